@@ -1,0 +1,1 @@
+"""msg_adapters: ROS 2 messages <-> numpy arrays and owl_core records, table-driven."""

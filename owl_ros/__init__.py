@@ -1,0 +1,1 @@
+"""owl_ros: the rclpy node `owl` and the command-line tools."""
