@@ -1,0 +1,31 @@
+"""Shared fixtures: repository paths and a per-module ROS domain for DDS tests."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    """The repository root (where package.xml lives)."""
+    return REPO
+
+
+@pytest.fixture
+def ros_domain_env(monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
+    """Environment for child ROS processes on a private DDS domain.
+
+    Each test gets its own ROS_DOMAIN_ID (derived from the pid and a counter) so
+    that tests running next to each other never see each other's topics.
+    """
+    ros_domain_env.counter = getattr(ros_domain_env, "counter", 0) + 1  # type: ignore[attr-defined]
+    domain = 100 + (os.getpid() * 7 + ros_domain_env.counter) % 100  # type: ignore[attr-defined]
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    monkeypatch.setenv("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    monkeypatch.setenv("PYTHONUNBUFFERED", "1")
+    return dict(os.environ)
