@@ -8,8 +8,7 @@ PACKAGE = "owl_ros"
 
 # Each executable is registered once it is real; `ros2 run owl_ros <name>` finds
 # it under lib/owl_ros (setup.cfg), a pip/venv install puts it on PATH.
-CONSOLE_SCRIPTS = [
-]
+CONSOLE_SCRIPTS = []
 
 setup(
     name=PACKAGE,

@@ -19,8 +19,17 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 BUILD_IGNORE = shutil.ignore_patterns(
-    ".venv", ".git", "build", "install", "log", "results", "__pycache__", "*.egg-info",
-    ".pytest_cache", ".ruff_cache", ".mypy_cache",
+    ".venv",
+    ".git",
+    "build",
+    "install",
+    "log",
+    "results",
+    "__pycache__",
+    "*.egg-info",
+    ".pytest_cache",
+    ".ruff_cache",
+    ".mypy_cache",
 )
 
 
@@ -104,9 +113,23 @@ def test_colcon_build_installs_what_ros2_run_needs(tmp_path: Path) -> None:
     shutil.copytree(REPO, src, ignore=BUILD_IGNORE)
     env = dict(os.environ)
     done = subprocess.run(
-        [str(colcon), "build", "--base-paths", "src", "--build-base", "build",
-         "--install-base", "install", "--event-handlers", "console_direct-"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env,
+        [
+            str(colcon),
+            "build",
+            "--base-paths",
+            "src",
+            "--build-base",
+            "build",
+            "--install-base",
+            "install",
+            "--event-handlers",
+            "console_direct-",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
     )
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     prefix = tmp_path / "install" / "owl_ros"
@@ -118,7 +141,9 @@ def test_colcon_build_installs_what_ros2_run_needs(tmp_path: Path) -> None:
     for name in scripts:
         done = subprocess.run(
             [str(prefix / "lib" / "owl_ros" / name), "--help"],
-            capture_output=True, text=True, timeout=120,
+            capture_output=True,
+            text=True,
+            timeout=120,
             env={**env, "PYTHONPATH": str(next((prefix / "lib").glob("python3*/site-packages")))},
         )
         assert done.returncode == 0, f"{name} --help failed: {done.stderr[-2000:]}"
