@@ -1,0 +1,492 @@
+"""Per-point OWL mathematics, vectorised over N features (see docs/owl-math.md).
+
+Conventions: camera optical frame (x right, y down, z forward); ``e`` unit bearings;
+``f = de/dt + Omega x e`` the derotated bearing rate (1/s, tangent to the sphere at ``e``);
+``L = (t.e)/r`` looming (1/s); ``omega = f x e = (e x t)/r`` perceived rotation (1/s);
+``ToR = (L, omega)`` and ``RoT = ToR^-1 = (L, -omega)/(L^2 + |omega|^2)`` scalar-first
+quaternions; ``r/|t| = 1/|ToR|`` (s); scaled point ``e r/|t|`` (s); per-point heading
+``(L e + omega x e)/|ToR|``.
+
+Nothing here divides by zero: every function that can be undefined returns a ``valid`` mask
+and fills undefined entries with NaN.
+
+The local looming rule: in a gnomonic chart centred on ``e`` (neighbour offset ``d`` on the
+tangent plane, relative chart velocity ``dv``), a rigid smooth surface gives
+``dv = L d + f (g.d) + c rot90(d)`` to first order, with ``g`` the surface slant and ``c`` a
+curl that absorbs any leftover rotation. :func:`fit_local_looming` solves it per feature by
+iteratively reweighted least squares (Cauchy weights), batched over all features.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from owl_core.errors import InvalidInputError
+from owl_core.types import PointFlag
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+#: |ToR| (1/s) below which RoT, range_over_speed, the scaled point and the heading are undefined.
+DEFAULT_MIN_TOR = 1e-9
+
+
+def _as_vectors(name: str, value: npt.ArrayLike, dim: int = 3) -> FloatArray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != dim:
+        raise InvalidInputError(f"{name} must have shape (N, {dim}), got {arr.shape}")
+    return arr
+
+
+def _as_scalars(name: str, value: npt.ArrayLike, n: int) -> FloatArray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (n,):
+        raise InvalidInputError(f"{name} must have shape ({n},), got {arr.shape}")
+    return arr
+
+
+def _check_same_n(**arrays: FloatArray) -> int:
+    sizes = {name: a.shape[0] for name, a in arrays.items()}
+    if len(set(sizes.values())) > 1:
+        raise InvalidInputError(f"arrays must share the first dimension N, got {sizes}")
+    return next(iter(sizes.values())) if sizes else 0
+
+
+def derotate(
+    bearings: npt.ArrayLike, bearing_rates: npt.ArrayLike, angular_velocity: npt.ArrayLike
+) -> FloatArray:
+    """Remove the camera rotation from bearing rates: ``f = de/dt + Omega x e``.
+
+    Args:
+        bearings: (N, 3) float64 unit bearings e, camera frame.
+        bearing_rates: (N, 3) float64 de/dt, 1/s (includes the camera rotation).
+        angular_velocity: (3,) or (N, 3) float64 camera angular velocity Omega, rad/s.
+
+    Returns:
+        (N, 3) float64 derotated bearing rates f, 1/s.
+    """
+    e = _as_vectors("bearings", bearings)
+    de = _as_vectors("bearing_rates", bearing_rates)
+    _check_same_n(bearings=e, bearing_rates=de)
+    w = np.asarray(angular_velocity, dtype=np.float64)
+    if w.shape not in ((3,), e.shape):
+        raise InvalidInputError(
+            f"angular_velocity must have shape (3,) or {e.shape}, got {w.shape}"
+        )
+    return de + np.cross(np.broadcast_to(w, e.shape), e)
+
+
+def perceived_rotation(bearings: npt.ArrayLike, derotated: npt.ArrayLike) -> FloatArray:
+    """Perceived rotation ``omega = f x e`` (= (e x t)/r), 1/s.
+
+    Args:
+        bearings: (N, 3) float64 unit bearings e.
+        derotated: (N, 3) float64 derotated bearing rates f, 1/s.
+
+    Returns:
+        (N, 3) float64 omega, 1/s, perpendicular to e.
+    """
+    e = _as_vectors("bearings", bearings)
+    f = _as_vectors("derotated", derotated)
+    _check_same_n(bearings=e, derotated=f)
+    return np.cross(f, e)
+
+
+@dataclass(frozen=True)
+class OwlQuantities:
+    """The quantities built from L and omega, N points.
+
+    Attributes:
+        tor: (N, 4) float64 ToR = (L, omega) scalar-first, 1/s.
+        rot: (N, 4) float64 RoT = ToR^-1 scalar-first, s (NaN where invalid).
+        range_over_speed: (N,) float64 r/|t| = 1/|ToR|, s (NaN where invalid).
+        points: (N, 3) float64 scaled points e r/|t|, s (NaN where invalid).
+        heading: (N, 3) float64 per-point unit heading t/|t| (NaN where invalid).
+        alpha: (N,) float64 angle between heading and bearing, rad (NaN where invalid).
+        valid: (N,) bool, False where |ToR| <= min_tor (no translation) or inputs not finite.
+    """
+
+    tor: FloatArray
+    rot: FloatArray
+    range_over_speed: FloatArray
+    points: FloatArray
+    heading: FloatArray
+    alpha: FloatArray
+    valid: BoolArray
+
+
+def owl_quantities(
+    bearings: npt.ArrayLike,
+    looming: npt.ArrayLike,
+    omega: npt.ArrayLike,
+    min_tor: float = DEFAULT_MIN_TOR,
+) -> OwlQuantities:
+    """ToR, RoT, r/|t|, scaled point and per-point heading from L and omega.
+
+    Args:
+        bearings: (N, 3) float64 unit bearings e.
+        looming: (N,) float64 L, 1/s.
+        omega: (N, 3) float64 perceived rotation, 1/s.
+        min_tor: |ToR| threshold, 1/s; at or below it the point has no translation signal.
+
+    Returns:
+        :class:`OwlQuantities` with a ``valid`` mask; invalid entries are NaN.
+    """
+    e = _as_vectors("bearings", bearings)
+    w = _as_vectors("omega", omega)
+    n = _check_same_n(bearings=e, omega=w)
+    lo = _as_scalars("looming", looming, n)
+    if not min_tor >= 0.0:
+        raise InvalidInputError(f"min_tor must be >= 0, got {min_tor}")
+    tor = np.concatenate([lo[:, None], w], axis=1)
+    norm2 = np.einsum("ij,ij->i", tor, tor)
+    finite = np.isfinite(norm2) & np.all(np.isfinite(e), axis=1)
+    valid = finite & (norm2 > min_tor * min_tor)
+    safe2 = np.where(valid, norm2, 1.0)
+    norm = np.sqrt(safe2)
+    rot = np.concatenate([lo[:, None], -w], axis=1) / safe2[:, None]
+    ros = 1.0 / norm
+    points = e * ros[:, None]
+    heading = (lo[:, None] * e + np.cross(w, e)) / norm[:, None]
+    alpha = np.arctan2(np.linalg.norm(w, axis=1), lo)
+    nan = ~valid
+    rot[nan] = np.nan
+    ros[nan] = np.nan
+    points[nan] = np.nan
+    heading[nan] = np.nan
+    alpha[nan] = np.nan
+    return OwlQuantities(tor, rot, ros, points, heading, alpha, valid)
+
+
+def tangent_basis(bearings: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """An orthonormal tangent basis (u1, u2) at each bearing, with u1 x u2 = e.
+
+    Args:
+        bearings: (N, 3) float64 unit bearings.
+
+    Returns:
+        u1, u2: (N, 3) float64 each.
+    """
+    e = _as_vectors("bearings", bearings)
+    # Pick the axis least aligned with e as the helper, so the cross product never vanishes.
+    helper = np.zeros_like(e)
+    helper[np.arange(e.shape[0]), np.argmin(np.abs(e), axis=1)] = 1.0
+    u1 = np.cross(helper, e)
+    u1 /= np.linalg.norm(u1, axis=1, keepdims=True)
+    u2 = np.cross(e, u1)
+    return u1, u2
+
+
+def gnomonic_chart(
+    bearings: FloatArray,
+    derotated: FloatArray,
+    neighbour_bearings: FloatArray,
+    neighbour_derotated: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Neighbour offsets and relative velocities in the gnomonic chart centred on each e.
+
+    The chart maps a bearing b to ``b/(b.e) - e`` on the tangent plane at e; its time
+    derivative for a point moving with ``db/dt = f_b`` is ``f_b/(b.e) - b (f_b.e)/(b.e)^2``.
+
+    Args:
+        bearings: (N, 3) unit bearings e (chart centres).
+        derotated: (N, 3) derotated rates f at e, 1/s.
+        neighbour_bearings: (N, k, 3) unit bearings of the neighbours.
+        neighbour_derotated: (N, k, 3) derotated rates of the neighbours, 1/s.
+
+    Returns:
+        d: (N, k, 2) chart offsets (tan of the angle, dimensionless);
+        dv: (N, k, 2) chart velocity of each neighbour minus that of the centre, 1/s;
+        f2: (N, 2) chart velocity of the centre (= f in the tangent basis), 1/s.
+    """
+    u1, u2 = tangent_basis(bearings)
+    basis = np.stack([u1, u2], axis=1)  # (N, 2, 3)
+    cos = np.einsum("nkj,nj->nk", neighbour_bearings, bearings)
+    safe = np.where(cos > 1e-6, cos, np.nan)
+    proj = neighbour_bearings / safe[..., None] - bearings[:, None, :]
+    fe = np.einsum("nkj,nj->nk", neighbour_derotated, bearings)
+    vel = neighbour_derotated / safe[..., None] - neighbour_bearings * (fe / safe**2)[..., None]
+    d = np.einsum("nkj,naj->nka", proj, basis)
+    f2 = np.einsum("nj,naj->na", derotated, basis)
+    dv = np.einsum("nkj,naj->nka", vel, basis) - f2[:, None, :]
+    return d, dv, f2
+
+
+@dataclass(frozen=True)
+class LocalFit:
+    """Result of the local looming rule for N features.
+
+    Attributes:
+        looming: (N,) float64 L, 1/s (NaN where invalid).
+        variance: (N,) float64 variance of L, 1/s^2 (inf where invalid).
+        slant: (N, 2) float64 g = -grad ln(depth) in the chart basis (NaN where invalid).
+        curl: (N,) float64 curl c, rad/s (a leftover rotation about e shows up here).
+        residual_rms: (N,) float64 weighted RMS residual of the fit, 1/s.
+        quality: (N,) float64 in [0, 1]; 1 = residual at the noise level or below.
+        num_used: (N,) int64 neighbours with non-negligible robust weight.
+        valid: (N,) bool, False with too few neighbours or an ill-conditioned fit.
+    """
+
+    looming: FloatArray
+    variance: FloatArray
+    slant: FloatArray
+    curl: FloatArray
+    residual_rms: FloatArray
+    quality: FloatArray
+    num_used: npt.NDArray[np.int64]
+    valid: BoolArray
+
+
+def fit_local_looming(
+    bearings: npt.ArrayLike,
+    derotated: npt.ArrayLike,
+    neighbour_bearings: npt.ArrayLike,
+    neighbour_derotated: npt.ArrayLike,
+    neighbour_mask: npt.ArrayLike | None = None,
+    *,
+    noise: float = 1e-3,
+    min_neighbours: int = 4,
+    iterations: int = 3,
+    robust_scale: float = 3.0,
+    slant_prior: float = 100.0,
+    max_l_sigma: float = np.inf,
+) -> LocalFit:
+    """Fit ``dv = L d + f (g.d) + c rot90(d)`` per feature (owl-math.md rules 2-4).
+
+    Batched over features: the normal equations of all N features are built as (N, 4, 4)
+    arrays and solved at once. Cauchy weights ``1/(1 + (res/(robust_scale * s))^2)``, with
+    ``s = max(noise, robust residual scale)``, down-weight neighbours across a depth or
+    motion boundary.
+
+    Args:
+        bearings: (N, 3) unit bearings e.
+        derotated: (N, 3) derotated bearing rates f, 1/s.
+        neighbour_bearings: (N, k, 3) neighbour bearings.
+        neighbour_derotated: (N, k, 3) neighbour derotated rates, 1/s.
+        neighbour_mask: (N, k) bool, False for missing neighbours (default all True).
+        noise: 1-sigma noise of one neighbour's relative chart velocity, 1/s per axis; floor
+            of the residual scale used for weights, variance and quality.
+        min_neighbours: fewer usable neighbours than this -> invalid (at least 2).
+        iterations: IRLS iterations after the initial least-squares solve.
+        robust_scale: Cauchy scale in units of the residual scale.
+        slant_prior: 1-sigma prior on each slant component (dimensionless); it keeps the
+            fit solvable at the focus of expansion (f = 0), where g is unobservable.
+        max_l_sigma: fits whose standard deviation of L exceeds this (1/s) are invalid.
+
+    Returns:
+        :class:`LocalFit`.
+    """
+    e = _as_vectors("bearings", bearings)
+    f = _as_vectors("derotated", derotated)
+    n = _check_same_n(bearings=e, derotated=f)
+    nb = np.asarray(neighbour_bearings, dtype=np.float64)
+    nf = np.asarray(neighbour_derotated, dtype=np.float64)
+    if nb.ndim != 3 or nb.shape[0] != n or nb.shape[2] != 3:
+        raise InvalidInputError(f"neighbour_bearings must have shape ({n}, k, 3), got {nb.shape}")
+    if nf.shape != nb.shape:
+        raise InvalidInputError(f"neighbour_derotated must have shape {nb.shape}, got {nf.shape}")
+    k = nb.shape[1]
+    if neighbour_mask is None:
+        mask = np.ones((n, k), dtype=bool)
+    else:
+        mask = np.asarray(neighbour_mask, dtype=bool)
+        if mask.shape != (n, k):
+            raise InvalidInputError(f"neighbour_mask must have shape ({n}, {k}), got {mask.shape}")
+    if min_neighbours < 2:
+        raise InvalidInputError(f"min_neighbours must be >= 2, got {min_neighbours}")
+    if not noise > 0.0:
+        raise InvalidInputError(f"noise must be > 0, got {noise}")
+
+    d, dv, f2 = gnomonic_chart(e, f, nb, nf)
+    mask = mask & np.all(np.isfinite(d), axis=2) & np.all(np.isfinite(dv), axis=2)
+    d = np.where(mask[..., None], d, 0.0)
+    dv = np.where(mask[..., None], dv, 0.0)
+    # Design: rows for the two chart axes of each neighbour; unknowns x = (L, g1, g2, c).
+    # dv_a = L d_a + f_a (g1 d_1 + g2 d_2) + c rot90(d)_a, rot90(d) = (-d_2, d_1).
+    a = np.zeros((n, k, 2, 4))
+    a[:, :, 0, 0] = d[..., 0]
+    a[:, :, 1, 0] = d[..., 1]
+    a[:, :, :, 1] = f2[:, None, :] * d[..., 0:1]
+    a[:, :, :, 2] = f2[:, None, :] * d[..., 1:2]
+    a[:, :, 0, 3] = -d[..., 1]
+    a[:, :, 1, 3] = d[..., 0]
+    # Normalise by the neighbourhood size so conditioning does not depend on the radius.
+    radius = np.sqrt(
+        np.sum(np.where(mask, np.einsum("nka,nka->nk", d, d), 0.0), axis=1)
+        / np.maximum(mask.sum(axis=1), 1)
+    )
+    radius = np.where(radius > 0, radius, 1.0)
+    weights = mask.astype(np.float64)
+    ridge = np.zeros((n, 4, 4))
+    ridge_g = np.maximum(noise**2 / (slant_prior**2 * radius**2), 1e-10)
+    ridge[:, 1, 1] = ridge_g
+    ridge[:, 2, 2] = ridge_g
+    x = np.zeros((n, 4))
+    resid = np.zeros((n, k))
+    scale = np.full(n, noise)
+    ok = mask.sum(axis=1) >= min_neighbours
+    normal = np.zeros((n, 4, 4))
+    for it in range(iterations + 1):
+        wa = a * weights[:, :, None, None]
+        normal = np.einsum("nkai,nkaj->nij", wa, a) / radius[:, None, None] ** 2
+        rhs = np.einsum("nkai,nka->ni", wa, dv) / radius[:, None] ** 2
+        good = ok & np.all(np.isfinite(normal), axis=(1, 2))
+        safe_normal = np.where(good[:, None, None], normal + ridge, np.eye(4))
+        x = np.linalg.solve(safe_normal, rhs[..., None])[..., 0]
+        r = dv - np.einsum("nkai,ni->nka", a, x)
+        resid = np.sqrt(np.einsum("nka,nka->nk", r, r))
+        if it == iterations:
+            break
+        # Robust scale: median absolute residual per feature (over its used neighbours).
+        med = np.nanmedian(np.where(mask, resid, np.nan), axis=1)
+        scale = np.maximum(np.nan_to_num(med, nan=noise) * 1.4826, noise)
+        u = resid / (robust_scale * scale[:, None])
+        weights = mask / (1.0 + u * u)
+
+    wsum = np.sum(weights, axis=1)
+    used = np.sum(weights > 0.5, axis=1)
+    dof = np.maximum(2.0 * wsum - 4.0, 1.0)
+    rms = np.sqrt(np.sum(weights * resid**2, axis=1) / dof)
+    sigma2 = np.maximum(rms, noise) ** 2
+    # L and c are observable from the offsets alone: their 2x2 block must be well conditioned.
+    lc = normal[:, [0, 3]][:, :, [0, 3]]
+    eig = np.linalg.eigvalsh(np.where(ok[:, None, None], lc, np.eye(2)))
+    valid = ok & (used >= min_neighbours) & (eig[:, 0] > 1e-6 * np.maximum(eig[:, 1], 1e-300))
+    valid &= np.all(np.isfinite(x), axis=1)
+    safe_normal = np.where(valid[:, None, None], normal + ridge, np.eye(4))
+    cov00 = np.linalg.inv(safe_normal)[:, 0, 0] / radius**2
+    variance = np.where(valid, sigma2 * cov00, np.inf)
+    valid &= np.sqrt(variance) <= max_l_sigma
+    variance = np.where(valid, variance, np.inf)
+    quality = np.where(valid, 1.0 / (1.0 + (np.maximum(rms - noise, 0.0) / noise) ** 2), 0.0)
+    looming = np.where(valid, x[:, 0], np.nan)
+    slant = np.where(valid[:, None], x[:, 1:3], np.nan)
+    curl = np.where(valid, x[:, 3], np.nan)
+    return LocalFit(looming, variance, slant, curl, rms, quality, used.astype(np.int64), valid)
+
+
+@dataclass(frozen=True)
+class HeadingRoute:
+    """L from the heading route for N features.
+
+    Attributes:
+        looming: (N,) float64 L = |omega| cot(alpha), 1/s (NaN where invalid).
+        variance: (N,) float64 variance of L, 1/s^2 (inf where invalid).
+        valid: (N,) bool, False near the focus of expansion (sin(alpha) < min_sin).
+    """
+
+    looming: FloatArray
+    variance: FloatArray
+    valid: BoolArray
+
+
+def looming_from_heading(
+    bearings: npt.ArrayLike,
+    omega: npt.ArrayLike,
+    heading: npt.ArrayLike,
+    *,
+    omega_sigma: float | npt.ArrayLike = 1e-3,
+    heading_sigma: float = 0.0,
+    min_sin: float = 0.05,
+) -> HeadingRoute:
+    """L by the heading route, signed: ``L = (|t|/r) cos(alpha)``, ``|t|/r`` from omega.
+
+    With ``h`` the unit heading, ``omega = (|t|/r) (e x h)``, so the least-squares speed ratio
+    is ``s = omega.(e x h)/|e x h|^2`` and ``L = s (h.e)`` (= |omega| cot(alpha) when omega
+    agrees with the heading).
+
+    Args:
+        bearings: (N, 3) unit bearings e.
+        omega: (N, 3) perceived rotation, 1/s.
+        heading: (3,) unit translation direction.
+        omega_sigma: scalar or (N,) 1-sigma error of each omega component, 1/s.
+        heading_sigma: 1-sigma angular error of the heading, rad.
+        min_sin: points with sin(alpha) below this (near the focus of expansion or its
+            antipode) get no L from this route.
+
+    Returns:
+        :class:`HeadingRoute`.
+    """
+    e = _as_vectors("bearings", bearings)
+    w = _as_vectors("omega", omega)
+    _check_same_n(bearings=e, omega=w)
+    h = np.asarray(heading, dtype=np.float64)
+    if h.shape != (3,) or not np.all(np.isfinite(h)) or np.linalg.norm(h) == 0:
+        raise InvalidInputError(f"heading must be a finite non-zero (3,) vector, got {h!r}")
+    h = h / np.linalg.norm(h)
+    exh = np.cross(e, h)
+    sin2 = np.einsum("ij,ij->i", exh, exh)
+    cos = e @ h
+    valid = (sin2 > min_sin * min_sin) & np.all(np.isfinite(w), axis=1)
+    safe2 = np.where(valid, sin2, 1.0)
+    speed = np.einsum("ij,ij->i", w, exh) / safe2
+    looming = speed * cos
+    sig = np.broadcast_to(np.asarray(omega_sigma, dtype=np.float64), cos.shape)
+    # dL/domega along (e x h) is cos/sin; dL/dalpha = -|t|/r (for fixed |t|/r along e x h).
+    variance = sig**2 * cos**2 / safe2 + (speed * heading_sigma) ** 2 / safe2
+    return HeadingRoute(np.where(valid, looming, np.nan), np.where(valid, variance, np.inf), valid)
+
+
+@dataclass(frozen=True)
+class FusedLooming:
+    """Variance-weighted fusion of the two L routes.
+
+    Attributes:
+        looming: (N,) float64 fused L, 1/s (NaN where neither route gave one).
+        variance: (N,) float64, 1/s^2 (inf where invalid).
+        flags: (N,) uint8 PointFlag.L_LOCAL / L_HEADING bits of the routes used.
+        valid: (N,) bool.
+    """
+
+    looming: FloatArray
+    variance: FloatArray
+    flags: npt.NDArray[np.uint8]
+    valid: BoolArray
+
+
+def fuse_looming(
+    local: LocalFit | None, heading: HeadingRoute | None, n: int, max_disagreement: float = 4.0
+) -> FusedLooming:
+    """Fuse L from the local rule and the heading route by inverse variance.
+
+    When both routes exist but disagree by more than ``max_disagreement`` combined sigmas,
+    only the local rule is kept (it makes no static-scene assumption).
+
+    Args:
+        local: local-rule fit for the N features, or None.
+        heading: heading-route L for the N features, or None.
+        n: number of features N.
+        max_disagreement: gating threshold, in combined standard deviations.
+
+    Returns:
+        :class:`FusedLooming`.
+    """
+    zero = np.zeros(n, dtype=bool)
+    l_ok = local.valid & np.isfinite(local.variance) if local is not None else zero
+    h_ok = heading.valid & np.isfinite(heading.variance) if heading is not None else zero
+    l_val = local.looming if local is not None else np.full(n, np.nan)
+    l_var = local.variance if local is not None else np.full(n, np.inf)
+    h_val = heading.looming if heading is not None else np.full(n, np.nan)
+    h_var = heading.variance if heading is not None else np.full(n, np.inf)
+    both = l_ok & h_ok
+    gap = np.abs(np.where(both, l_val - h_val, 0.0))
+    agree = gap <= max_disagreement * np.sqrt(np.where(both, l_var + h_var, 1.0))
+    h_use = h_ok & (~l_ok | agree)
+    wl = np.where(l_ok, 1.0 / np.maximum(np.where(l_ok, l_var, 1.0), 1e-300), 0.0)
+    wh = np.where(h_use, 1.0 / np.maximum(np.where(h_use, h_var, 1.0), 1e-300), 0.0)
+    wsum = wl + wh
+    valid = wsum > 0
+    safe = np.where(valid, wsum, 1.0)
+    fused = (wl * np.nan_to_num(l_val) + wh * np.nan_to_num(h_val)) / safe
+    flags = np.where(l_ok, np.uint8(PointFlag.L_LOCAL), np.uint8(0)) | np.where(
+        h_use, np.uint8(PointFlag.L_HEADING), np.uint8(0)
+    )
+    return FusedLooming(
+        np.where(valid, fused, np.nan),
+        np.where(valid, 1.0 / safe, np.inf),
+        flags.astype(np.uint8),
+        valid,
+    )
