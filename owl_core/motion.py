@@ -321,7 +321,7 @@ def fit_local_looming(
     radius = np.where(radius > 0, radius, 1.0)
     weights = mask.astype(np.float64)
     ridge = np.zeros((n, 4, 4))
-    ridge_g = np.maximum(noise**2 / (slant_prior**2 * radius**2), 1e-10)
+    ridge_g = np.maximum(noise**2 / (slant_prior**2 * radius**2), 1e-14)
     ridge[:, 1, 1] = ridge_g
     ridge[:, 2, 2] = ridge_g
     x = np.zeros((n, 4))
