@@ -1,0 +1,551 @@
+"""Reading and writing rosbag2 MCAP bags with rosbags (ROS 2 Jazzy message types).
+
+A bag on disk is a rosbag2 directory: ``metadata.yaml`` plus one ``<name>.mcap`` file
+(storage ``mcap``, metadata version 8, which ``ros2 bag play``/``info`` of Jazzy reads).
+A bare ``.mcap`` file can be read as well.
+
+Reading::
+
+    with BagReader("scene_bag") as bag:
+        bag.topics["/imu/data"]            # TopicInfo(msgtype, count, offered_qos)
+        for raw in bag.messages(["/imu/data"]):   # RawMessage, log-time order
+            msg = bag.deserialize(raw)     # rosbags message object
+
+Writing (nothing is left behind if an exception escapes the ``with`` block; the bag is
+built in a hidden sibling directory and renamed into place on success)::
+
+    with BagWriter("out_bag", overwrite=True) as bag:
+        bag.add_topic("/tf_static", "tf2_msgs/msg/TFMessage", qos="latched")
+        bag.write("/tf_static", stamp_ns, msg)           # rosbags message object
+        bag.write_raw("/camera/image_raw", stamp_ns, cdr_bytes)
+
+QoS names for ``add_topic`` (recorded in ``offered_qos_profiles``, which ``ros2 bag play``
+uses to choose the publisher QoS):
+
+- ``"sensor"``: keep last 5, best effort, volatile (rclcpp/rclpy sensor data profile);
+- ``"reliable"``: keep last 10, reliable, volatile;
+- ``"latched"``: keep last 1, reliable, transient local (``/tf_static``).
+
+Errors are :mod:`bags.errors` classes with one-line messages naming the path or topic:
+:class:`~bags.errors.BagNotFoundError`, :class:`~bags.errors.NotABagError`,
+:class:`~bags.errors.CorruptBagError` (truncated or damaged; ``BagReader(path,
+recover=True)`` then reads the complete messages before the damage),
+:class:`~bags.errors.BagExistsError`, :class:`~bags.errors.BagTopicError`.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import shutil
+import tempfile
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+from mcap.exceptions import McapError
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
+from rosbags.rosbag2.metadata import parse_qos
+from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
+
+from bags.errors import (
+    BagError,
+    BagExistsError,
+    BagNotFoundError,
+    BagTopicError,
+    CorruptBagError,
+    NotABagError,
+)
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+#: rosbag2 metadata version written (Jazzy's rosbag2 writes and reads version 8).
+METADATA_VERSION = 8
+
+_ZERO = QosTime(0, 0)  # rmw "unspecified" duration = the policy default (infinite)
+
+
+def _qos(depth: int, reliability: QosReliability, durability: QosDurability) -> Qos:
+    return Qos(
+        QosHistory.KEEP_LAST,
+        depth,
+        reliability,
+        durability,
+        _ZERO,
+        _ZERO,
+        QosLiveliness.AUTOMATIC,
+        _ZERO,
+        False,
+    )
+
+
+#: The offered QoS profile recorded for each ``add_topic(qos=...)`` name.
+QOS_PROFILES: dict[str, Qos] = {
+    "sensor": _qos(5, QosReliability.BEST_EFFORT, QosDurability.VOLATILE),
+    "reliable": _qos(10, QosReliability.RELIABLE, QosDurability.VOLATILE),
+    "latched": _qos(1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL),
+}
+
+
+@functools.cache
+def typestore() -> Typestore:
+    """The shared rosbags typestore with every ROS 2 Jazzy message type (do not mutate)."""
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+@dataclass(frozen=True)
+class RawMessage:
+    """One serialised message as stored in the bag.
+
+    Attributes:
+        topic: topic name, e.g. "/imu/data".
+        msgtype: ROS 2 type name, e.g. "sensor_msgs/msg/Imu".
+        log_time_ns: the bag's log (receive) time, integer nanoseconds.
+        data: the CDR bytes exactly as stored (what DDS carries, with encapsulation header).
+    """
+
+    topic: str
+    msgtype: str
+    log_time_ns: int
+    data: bytes
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    """What a bag holds on one topic.
+
+    Attributes:
+        msgtype: ROS 2 type name, e.g. "sensor_msgs/msg/Image".
+        count: number of messages on the topic.
+        offered_qos: the QoS profiles the recorded publishers offered (may be empty).
+    """
+
+    msgtype: str
+    count: int
+    offered_qos: tuple[Qos, ...]
+
+    @property
+    def qos_kind(self) -> str:
+        """ "latched" (any publisher transient local), "sensor" (best effort) or "reliable"."""
+        if any(q.durability == QosDurability.TRANSIENT_LOCAL for q in self.offered_qos):
+            return "latched"
+        if any(q.reliability == QosReliability.BEST_EFFORT for q in self.offered_qos):
+            return "sensor"
+        return "reliable"
+
+
+def _one_line(err: BaseException) -> str:
+    text = " ".join(str(err).split())
+    return text or type(err).__name__
+
+
+def _has_mcap_magic(path: Path) -> bool:
+    try:
+        with path.open("rb") as f:
+            return f.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+    except OSError:
+        return False
+
+
+class BagReader:
+    """Reads a rosbag2 directory (metadata.yaml + storage files) or a bare ``.mcap`` file.
+
+    Use as a context manager. Opening raises BagNotFoundError (missing path), NotABagError
+    (neither a rosbag2 directory nor an MCAP file) or CorruptBagError (truncated or damaged).
+    With ``recover=True`` a damaged or unfinished MCAP (no footer, e.g. a recorder that was
+    killed, or a directory without metadata.yaml holding .mcap files) is read up to the
+    first damaged record: ``damage`` then says what was wrong, ``messages()`` yields the
+    complete messages before it in file order (which is log-time order for bags written in
+    time order), and offered QoS come from the MCAP channel records.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, recover: bool = False) -> None:
+        self.path = Path(path)
+        self.recover = recover
+        #: One-line description of the damage found in recover mode, else None.
+        self.damage: str | None = None
+        self._reader: Reader | None = None
+        self._mcap_files: list[Path] = []
+        self._topics: dict[str, TopicInfo] = {}
+        self._start_ns = 0
+        self._end_ns = 0
+        self._store: Typestore = typestore()
+        self._msgdefs: dict[str, tuple[str, str]] = {}  # msgtype -> (format, text)
+        if not self.path.exists():
+            msg = f"bag not found: {self.path}"
+            raise BagNotFoundError(msg)
+        if self.path.is_dir():
+            self._mcap_files = sorted(self.path.glob("*.mcap"))
+            if not (self.path / "metadata.yaml").is_file() and not (recover and self._mcap_files):
+                msg = f"not a bag: {self.path} is a directory without metadata.yaml"
+                raise NotABagError(msg)
+        elif not _has_mcap_magic(self.path):
+            msg = f"not a bag: {self.path} is neither a rosbag2 directory nor an MCAP file"
+            raise NotABagError(msg)
+        else:
+            self._mcap_files = [self.path]
+
+    # -- opening -------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Read the metadata and indexes (called by ``__enter__``)."""
+        try:
+            self._open_indexed()
+        except CorruptBagError as err:
+            if not (self.recover and self._mcap_files):
+                raise
+            self._open_recovered(str(err))
+
+    def _open_indexed(self) -> None:
+        target = self.path
+        if self.path.is_file() and self.path.suffix != ".mcap":
+            # rosbags picks the storage plugin by suffix; an MCAP under another name is
+            # read through the recovery path (it needs no index).
+            msg = f"truncated or corrupt bag {self.path}: MCAP file without .mcap suffix"
+            raise CorruptBagError(msg)
+        reader = Reader(target)
+        try:
+            reader.open()
+        except (ReaderError, OSError, KeyError, ValueError, TypeError) as err:
+            msg = f"truncated or corrupt bag {self.path}: {_one_line(err)}"
+            raise CorruptBagError(msg) from None
+        self._reader = reader
+        topics: dict[str, TopicInfo] = {}
+        for conn in reader.connections:
+            qos = tuple(getattr(conn.ext, "offered_qos_profiles", ()) or ())
+            old = topics.get(conn.topic)
+            if old is not None and old.msgtype != conn.msgtype:
+                msg = f"topic {conn.topic} has two types in {self.path}: {old.msgtype}, "
+                msg += conn.msgtype
+                raise CorruptBagError(msg)
+            count = conn.msgcount + (old.count if old else 0)
+            topics[conn.topic] = TopicInfo(
+                conn.msgtype, count, qos + (old.offered_qos if old else ())
+            )
+            if conn.msgdef.data:
+                fmt = "idl" if conn.msgdef.format.name == "IDL" else "msg"
+                self._msgdefs.setdefault(conn.msgtype, (fmt, conn.msgdef.data))
+        self._topics = topics
+        if reader.message_count:
+            self._start_ns = reader.start_time
+            self._end_ns = reader.end_time - 1  # rosbags reports end as last + 1
+        else:
+            self._start_ns = self._end_ns = 0
+
+    def _stream(self) -> Iterator[tuple[Schema | None, Channel, Message]]:
+        """Records of every MCAP file in order, stopping (and noting) at the first damage."""
+        for file in self._mcap_files:
+            schemas: dict[int, Schema] = {}
+            channels: dict[int, Channel] = {}
+            try:
+                with file.open("rb") as f:
+                    for record in StreamReader(f, skip_magic=False).records:
+                        if isinstance(record, Schema):
+                            schemas[record.id] = record
+                        elif isinstance(record, Channel):
+                            channels[record.id] = record
+                        elif isinstance(record, Message) and record.channel_id in channels:
+                            channel = channels[record.channel_id]
+                            yield schemas.get(channel.schema_id), channel, record
+            except (McapError, OSError, ValueError, EOFError) as err:
+                self.damage = f"{file}: {_one_line(err)}"
+                return
+
+    def _open_recovered(self, why: str) -> None:
+        self.damage = why
+        counts: dict[str, int] = {}
+        types: dict[str, str] = {}
+        qos: dict[str, tuple[Qos, ...]] = {}
+        start = end = None
+        for schema, channel, message in self._stream():
+            topic = channel.topic
+            if topic not in types:
+                types[topic] = schema.name if schema else ""
+                text = channel.metadata.get("offered_qos_profiles", "")
+                try:
+                    qos[topic] = tuple(parse_qos(text)) if text else ()
+                except (ValueError, KeyError, TypeError, AttributeError):
+                    qos[topic] = ()
+                if schema is not None and schema.data:
+                    fmt = "idl" if schema.encoding == "ros2idl" else "msg"
+                    self._msgdefs.setdefault(schema.name, (fmt, schema.data.decode()))
+            counts[topic] = counts.get(topic, 0) + 1
+            start = message.log_time if start is None else min(start, message.log_time)
+            end = message.log_time if end is None else max(end, message.log_time)
+        self._topics = {t: TopicInfo(types[t], counts[t], qos[t]) for t in types}
+        self._start_ns = start or 0
+        self._end_ns = end or 0
+
+    def close(self) -> None:
+        """Release the file handles (called by ``__exit__``)."""
+        if self._reader is not None:
+            reader, self._reader = self._reader, None
+            reader.close()
+
+    def __enter__(self) -> BagReader:
+        self.open()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- contents ------------------------------------------------------------------------
+
+    @property
+    def topics(self) -> dict[str, TopicInfo]:
+        """Topic name -> TopicInfo(msgtype, count, offered_qos)."""
+        return dict(self._topics)
+
+    @property
+    def start_ns(self) -> int:
+        """Log time of the first message, ns (0 for an empty bag)."""
+        return self._start_ns
+
+    @property
+    def end_ns(self) -> int:
+        """Log time of the last message, ns (0 for an empty bag)."""
+        return self._end_ns
+
+    @property
+    def message_count(self) -> int:
+        """Total number of messages."""
+        return sum(t.count for t in self._topics.values())
+
+    def messages(self, topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
+        """Yield the messages of ``topics`` (all when None) in log-time order.
+
+        Raises:
+            BagTopicError: a requested topic is not in the bag (names it).
+            CorruptBagError: a damaged record is met while reading (indexed mode).
+        """
+        wanted = None if topics is None else list(topics)
+        if wanted is not None:
+            missing = [t for t in wanted if t not in self._topics]
+            if missing:
+                msg = f"topic {missing[0]} not in bag {self.path} (has: "
+                msg += ", ".join(sorted(self._topics)) + ")"
+                raise BagTopicError(msg)
+        if self._reader is None and not self._topics and self.damage is None:
+            msg = f"bag {self.path} is not open (use it as a context manager)"
+            raise BagError(msg)
+        if self._reader is None:
+            keep = None if wanted is None else set(wanted)
+            for _schema, channel, message in self._stream():
+                if keep is None or channel.topic in keep:
+                    yield RawMessage(
+                        channel.topic,
+                        self._topics[channel.topic].msgtype,
+                        message.log_time,
+                        bytes(message.data),
+                    )
+            return
+        conns = [c for c in self._reader.connections if wanted is None or c.topic in wanted]
+        if not conns:
+            return
+        try:
+            for conn, stamp, data in self._reader.messages(connections=conns):
+                yield RawMessage(conn.topic, conn.msgtype, stamp, bytes(data))
+        except (ReaderError, OSError, ValueError, KeyError) as err:
+            msg = f"truncated or corrupt bag {self.path}: {_one_line(err)}"
+            raise CorruptBagError(msg) from None
+
+    def _ensure_type(self, msgtype: str) -> None:
+        if msgtype in self._store.fielddefs:
+            return
+        fmt, text = self._msgdefs.get(msgtype, ("", ""))
+        if not text:
+            msg = f"message type {msgtype} is not a Jazzy type and the bag has no definition"
+            raise BagTopicError(msg)
+        if self._store is typestore():
+            self._store = get_typestore(Stores.ROS2_JAZZY)  # private copy for custom types
+        try:
+            types = get_types_from_idl(text) if fmt == "idl" else get_types_from_msg(text, msgtype)
+            self._store.register(types)
+        except Exception as err:  # rosbags parser errors have no common base
+            msg = f"cannot parse the definition of {msgtype} in {self.path}: {_one_line(err)}"
+            raise BagTopicError(msg) from None
+
+    def deserialize(self, raw: RawMessage) -> Any:
+        """The rosbags message object of ``raw`` (custom types registered from the bag)."""
+        self._ensure_type(raw.msgtype)
+        try:
+            return self._store.deserialize_cdr(raw.data, raw.msgtype)
+        except Exception as err:  # CDR decoding errors have no common base class
+            msg = f"cannot deserialize {raw.msgtype} on {raw.topic} at {raw.log_time_ns} ns: "
+            raise CorruptBagError(msg + _one_line(err)) from None
+
+
+def _looks_like_bag_dir(path: Path) -> bool:
+    """True for a directory that only holds rosbag2 files (safe to replace)."""
+    allowed = {".mcap", ".db3", ".yaml", ".zstd", ".tmp"}
+    entries = list(path.iterdir())
+    return all(e.is_file() and e.suffix in allowed for e in entries) and (
+        not entries
+        or (path / "metadata.yaml").exists()
+        or any(e.suffix == ".mcap" for e in entries)
+    )
+
+
+class BagWriter:
+    """Writes a rosbag2 directory (metadata.yaml + <name>.mcap) with the Jazzy typestore.
+
+    The bag is written into a hidden temporary directory next to ``path`` and moved to
+    ``path`` when the ``with`` block ends without an exception; on an exception the
+    temporary output is deleted and an existing bag at ``path`` stays untouched.
+
+    Args:
+        path: the output rosbag2 directory.
+        overwrite: replace an existing bag at ``path``. Only a directory that holds
+            nothing but rosbag2 files is replaced; anything else raises BagExistsError.
+
+    Raises:
+        BagExistsError: ``path`` exists and ``overwrite`` is False, or it is not a bag.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> None:
+        self.path = Path(path)
+        self.overwrite = overwrite
+        self._check_target()
+        self._tmpdir: Path | None = None
+        self._writer: Writer | None = None
+        self._conns: dict[str, Any] = {}
+        self._types: dict[str, str] = {}
+        self._custom: dict[str, str] = {}
+        self.count = 0
+
+    def _check_target(self) -> None:
+        if not self.path.exists() and not self.path.is_symlink():
+            if not self.path.parent.is_dir():
+                msg = f"output directory {self.path.parent} does not exist (for bag {self.path})"
+                raise BagError(msg)
+            return
+        if not self.overwrite:
+            msg = f"output {self.path} exists (pass overwrite / --overwrite to replace it)"
+            raise BagExistsError(msg)
+        if not self.path.is_dir() or self.path.is_symlink() or not _looks_like_bag_dir(self.path):
+            msg = f"refusing to overwrite {self.path}: it is not a rosbag2 directory"
+            raise BagExistsError(msg)
+
+    def open(self) -> None:
+        """Create the temporary output (called by ``__enter__``)."""
+        self._check_target()
+        self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
+        writer = Writer(
+            self._tmpdir / self.path.name,
+            version=METADATA_VERSION,
+            storage_plugin=StoragePlugin.MCAP,
+        )
+        writer.open()
+        self._writer = writer
+
+    def set_custom_data(self, key: str, value: str) -> None:
+        """Record a string in metadata.yaml ``custom_data`` (e.g. scenario options)."""
+        self._custom[str(key)] = str(value)
+
+    def add_topic(self, topic: str, msgtype: str, qos: str = "reliable") -> None:
+        """Register ``topic`` with ROS 2 type ``msgtype`` and QoS name (see QOS_PROFILES)."""
+        if self._writer is None:
+            msg = f"bag {self.path} is not open (use BagWriter as a context manager)"
+            raise BagError(msg)
+        if qos not in QOS_PROFILES:
+            msg = f"unknown qos {qos!r} for topic {topic} (choose from {', '.join(QOS_PROFILES)})"
+            raise BagTopicError(msg)
+        if topic in self._conns:
+            msg = f"topic {topic} added twice to bag {self.path}"
+            raise BagTopicError(msg)
+        if msgtype not in typestore().fielddefs:
+            msg = f"message type {msgtype!r} (topic {topic}) is not a ROS 2 Jazzy type"
+            raise BagTopicError(msg)
+        self._conns[topic] = self._writer.add_connection(
+            topic, msgtype, typestore=typestore(), offered_qos_profiles=[QOS_PROFILES[qos]]
+        )
+        self._types[topic] = msgtype
+
+    def _conn(self, topic: str) -> Any:
+        conn = self._conns.get(topic)
+        if conn is None or self._writer is None:
+            msg = f"topic {topic} was not added to bag {self.path} (call add_topic first)"
+            raise BagTopicError(msg)
+        return conn
+
+    def write_raw(self, topic: str, stamp_ns: int, data: bytes | memoryview) -> None:
+        """Store CDR bytes ``data`` on ``topic`` with log time ``stamp_ns`` (int ns)."""
+        conn = self._conn(topic)
+        if int(stamp_ns) < 0:
+            msg = f"negative log time {stamp_ns} ns on topic {topic}"
+            raise BagError(msg)
+        assert self._writer is not None  # _conn checked it
+        self._writer.write(conn, int(stamp_ns), bytes(data))
+        self.count += 1
+
+    def write(self, topic: str, stamp_ns: int, msg: object) -> None:
+        """Serialise the rosbags message ``msg`` with the typestore and store it."""
+        self._conn(topic)
+        data = typestore().serialize_cdr(msg, self._types[topic])
+        self.write_raw(topic, stamp_ns, data)
+
+    def close(self) -> None:
+        """Finish the MCAP and metadata.yaml and move the bag to ``path``."""
+        if self._writer is None or self._tmpdir is None:
+            return
+        writer, self._writer = self._writer, None
+        for key, value in self._custom.items():
+            writer.set_custom_data(key, value)
+        try:
+            writer.close()
+            if self.path.exists():
+                self._check_target()
+                shutil.rmtree(self.path)
+            (self._tmpdir / self.path.name).rename(self.path)
+        except (WriterError, OSError) as err:
+            self._discard()
+            msg = f"cannot write bag {self.path}: {_one_line(err)}"
+            raise BagError(msg) from None
+        self._discard()
+
+    def abort(self) -> None:
+        """Drop everything written so far (called by ``__exit__`` on an exception)."""
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            try:
+                writer.abort()
+            except Exception:  # the output is deleted anyway
+                pass
+        self._discard()
+
+    def _discard(self) -> None:
+        if self._tmpdir is not None:
+            shutil.rmtree(self._tmpdir, ignore_errors=True)
+            self._tmpdir = None
+
+    def __enter__(self) -> BagWriter:
+        self.open()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()

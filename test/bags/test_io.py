@@ -1,0 +1,273 @@
+"""bags.io: exact round trips through rosbags and the independent `mcap` reader, and the
+one-line errors for missing, non-bag, truncated and existing paths."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from rosbags.interfaces import QosDurability, QosReliability
+
+from bags.errors import (
+    BagError,
+    BagExistsError,
+    BagNotFoundError,
+    BagTopicError,
+    CorruptBagError,
+    NotABagError,
+)
+from bags.io import BagReader, BagWriter, RawMessage, typestore
+
+TS = typestore()
+Time = TS.types["builtin_interfaces/msg/Time"]
+Header = TS.types["std_msgs/msg/Header"]
+Image = TS.types["sensor_msgs/msg/Image"]
+Imu = TS.types["sensor_msgs/msg/Imu"]
+Quaternion = TS.types["geometry_msgs/msg/Quaternion"]
+Vector3 = TS.types["geometry_msgs/msg/Vector3"]
+Transform = TS.types["geometry_msgs/msg/Transform"]
+TransformStamped = TS.types["geometry_msgs/msg/TransformStamped"]
+TFMessage = TS.types["tf2_msgs/msg/TFMessage"]
+String = TS.types["std_msgs/msg/String"]
+
+
+def _header(ns: int, frame: str) -> object:
+    return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
+
+
+def _imu(ns: int, k: int) -> object:
+    cov = np.zeros(9, dtype=np.float64)
+    return Imu(
+        header=_header(ns, "imu_link"),
+        orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=cov - 1.0,
+        angular_velocity=Vector3(x=0.1 * k, y=-0.2, z=1e-7 * k),
+        angular_velocity_covariance=cov,
+        linear_acceleration=Vector3(x=0.0, y=0.5, z=9.81),
+        linear_acceleration_covariance=cov,
+    )
+
+
+def _image(ns: int, k: int) -> object:
+    rng = np.random.default_rng(k)
+    # 640x480 so that the sample bag spans several 1 MiB MCAP chunks
+    data = rng.integers(0, 256, size=480 * 640, dtype=np.uint8)
+    return Image(
+        header=_header(ns, "camera_optical_frame"),
+        height=480,
+        width=640,
+        encoding="mono8",
+        is_bigendian=0,
+        step=640,
+        data=data,
+    )
+
+
+def _tf(ns: int) -> object:
+    tr = Transform(
+        translation=Vector3(x=0.1, y=0.0, z=0.0),
+        rotation=Quaternion(x=-0.5, y=0.5, z=-0.5, w=0.5),
+    )
+    return TFMessage(
+        transforms=[
+            TransformStamped(
+                header=_header(ns, "imu_link"), child_frame_id="camera_optical_frame", transform=tr
+            )
+        ]
+    )
+
+
+T0 = 1_700_000_000_000_000_000
+
+
+def _write_sample(path: Path, **kw: object) -> list[RawMessage]:
+    """A small bag with every QoS kind; returns what was written in log-time order."""
+    written: list[RawMessage] = []
+    with BagWriter(path, **kw) as bag:  # type: ignore[arg-type]
+        bag.add_topic("/tf_static", "tf2_msgs/msg/TFMessage", qos="latched")
+        bag.add_topic("/imu/data", "sensor_msgs/msg/Imu", qos="sensor")
+        bag.add_topic("/camera/image_raw", "sensor_msgs/msg/Image", qos="sensor")
+        bag.add_topic("/note", "std_msgs/msg/String", qos="reliable")
+        bag.set_custom_data("scenario", "unit-test")
+
+        def put(topic: str, msgtype: str, ns: int, msg: object) -> None:
+            bag.write(topic, ns, msg)
+            data = bytes(TS.serialize_cdr(msg, msgtype))
+            written.append(RawMessage(topic, msgtype, ns, data))
+
+        put("/tf_static", "tf2_msgs/msg/TFMessage", T0, _tf(T0))
+        for k in range(40):
+            ns = T0 + k * 5_000_000
+            put("/imu/data", "sensor_msgs/msg/Imu", ns, _imu(ns, k))
+            if k % 7 == 0:
+                put("/camera/image_raw", "sensor_msgs/msg/Image", ns + 1, _image(ns + 1, k))
+        raw = bytes(TS.serialize_cdr(String(data="raw bytes ünïcode"), "std_msgs/msg/String"))
+        bag.write_raw("/note", T0 + 10**9, raw)
+        written.append(RawMessage("/note", "std_msgs/msg/String", T0 + 10**9, raw))
+    return written
+
+
+def test_round_trip_rosbags_exact(tmp_path: Path) -> None:
+    out = tmp_path / "bag"
+    written = _write_sample(out)
+    assert sorted(p.name for p in out.iterdir()) == ["bag.mcap", "metadata.yaml"]
+    assert [p.name for p in tmp_path.iterdir()] == ["bag"]  # no temporary left behind
+    with BagReader(out) as bag:
+        got = list(bag.messages())
+        assert got == written  # topic, type, log time and CDR bytes, in log-time order
+        assert bag.start_ns == T0 and bag.end_ns == T0 + 10**9
+        assert bag.message_count == len(written)
+        assert bag.topics["/imu/data"].count == 40
+        assert bag.topics["/camera/image_raw"].msgtype == "sensor_msgs/msg/Image"
+        assert bag.topics["/tf_static"].qos_kind == "latched"
+        assert bag.topics["/imu/data"].qos_kind == "sensor"
+        assert bag.topics["/note"].qos_kind == "reliable"
+        (tf_qos,) = bag.topics["/tf_static"].offered_qos
+        assert tf_qos.durability == QosDurability.TRANSIENT_LOCAL
+        assert tf_qos.reliability == QosReliability.RELIABLE
+        imu = bag.deserialize(got[1])
+        assert imu.angular_velocity.x == 0.0 and imu.linear_acceleration.z == 9.81
+        img = bag.deserialize(next(m for m in got if m.topic == "/camera/image_raw"))
+        np.testing.assert_array_equal(img.data, _image(0, 0).data)
+        only = list(bag.messages(["/note", "/tf_static"]))
+        assert [m.topic for m in only] == ["/tf_static", "/note"]
+        assert bag.deserialize(only[1]).data == "raw bytes ünïcode"
+    # the bare .mcap file reads the same
+    with BagReader(out / "bag.mcap") as bag:
+        assert list(bag.messages()) == written
+
+
+def test_round_trip_mcap_reader_and_metadata(tmp_path: Path, mcap_read) -> None:
+    out = tmp_path / "bag"
+    written = _write_sample(out)
+    msgs = mcap_read(out)
+    assert [(m.topic, m.log_time_ns, m.data) for m in msgs] == [
+        (w.topic, w.log_time_ns, w.data) for w in written
+    ]
+    assert {m.schema_name for m in msgs if m.topic == "/imu/data"} == {"sensor_msgs/msg/Imu"}
+    first_imu = next(m.decoded for m in msgs if m.topic == "/imu/data")
+    assert first_imu.header.frame_id == "imu_link"
+    assert first_imu.linear_acceleration.z == 9.81
+    tf = next(m for m in msgs if m.topic == "/tf_static")
+    assert tf.decoded.transforms[0].transform.rotation.w == 0.5
+    assert yaml.safe_load(tf.qos_yaml)[0]["durability"] == 1  # transient local
+    img = next(m.decoded for m in msgs if m.topic == "/camera/image_raw")
+    assert bytes(img.data) == bytes(_image(0, 0).data)
+
+    meta = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["version"] == 8
+    assert meta["storage_identifier"] == "mcap"
+    assert meta["relative_file_paths"] == ["bag.mcap"]
+    assert meta["message_count"] == len(written)
+    assert meta["custom_data"] == {"scenario": "unit-test"}
+    topics = {t["topic_metadata"]["name"]: t for t in meta["topics_with_message_count"]}
+    tf_qos = yaml.safe_load(topics["/tf_static"]["topic_metadata"]["offered_qos_profiles"])
+    assert tf_qos[0]["durability"] == 1 and tf_qos[0]["reliability"] == 1
+    imu_qos = yaml.safe_load(topics["/imu/data"]["topic_metadata"]["offered_qos_profiles"])
+    assert imu_qos[0]["reliability"] == 2  # best effort
+    assert topics["/imu/data"]["message_count"] == 40
+
+
+def test_truncated_file_is_one_line_error_and_recoverable(tmp_path: Path) -> None:
+    out = tmp_path / "bag"
+    written = _write_sample(out)
+    mcap = out / "bag.mcap"
+    data = mcap.read_bytes()
+    mcap.write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(CorruptBagError) as info:
+        with BagReader(out):
+            pass
+    text = str(info.value)
+    assert "\n" not in text and str(out) in text and "truncated or corrupt" in text
+    # a bare truncated .mcap too
+    with pytest.raises(CorruptBagError):
+        with BagReader(mcap):
+            pass
+    with BagReader(out, recover=True) as bag:
+        got = list(bag.messages())
+        assert bag.damage is not None and "\n" not in bag.damage
+    # what was recovered is an exact prefix of what was written (none of it invented)
+    assert 0 < len(got) < len(written)
+    assert got == written[: len(got)]
+
+
+def test_not_a_bag_and_missing(tmp_path: Path) -> None:
+    with pytest.raises(BagNotFoundError, match=r"bag not found: .*nope"):
+        BagReader(tmp_path / "nope")
+    (tmp_path / "dir").mkdir()
+    (tmp_path / "dir" / "x.txt").write_text("hello")
+    with pytest.raises(NotABagError, match=r"without metadata\.yaml"):
+        BagReader(tmp_path / "dir")
+    (tmp_path / "file.mcap").write_bytes(b"not an mcap at all")
+    with pytest.raises(NotABagError, match=r"file\.mcap"):
+        BagReader(tmp_path / "file.mcap")
+    bad_meta = tmp_path / "badmeta"
+    bad_meta.mkdir()
+    (bad_meta / "metadata.yaml").write_text("rosbag2_bagfile_information: [1, 2\n")
+    with pytest.raises(CorruptBagError, match="badmeta"):
+        with BagReader(bad_meta):
+            pass
+
+
+def test_writer_refuses_existing_and_overwrites_bags_only(tmp_path: Path) -> None:
+    out = tmp_path / "bag"
+    _write_sample(out)
+    with pytest.raises(BagExistsError, match="exists"):
+        BagWriter(out)
+    second = _write_sample(out, overwrite=True)
+    with BagReader(out) as bag:
+        assert list(bag.messages()) == second
+    other = tmp_path / "notabag"
+    other.mkdir()
+    (other / "precious.txt").write_text("keep me")
+    with pytest.raises(BagExistsError, match="not a rosbag2 directory"):
+        BagWriter(other, overwrite=True)
+    assert (other / "precious.txt").read_text() == "keep me"
+    with pytest.raises(BagError, match="does not exist"):
+        BagWriter(tmp_path / "missing_parent" / "bag")
+
+
+def test_writer_removes_half_written_output(tmp_path: Path) -> None:
+    out = tmp_path / "bag"
+    with pytest.raises(RuntimeError, match="boom"):
+        with BagWriter(out) as bag:
+            bag.add_topic("/note", "std_msgs/msg/String")
+            bag.write("/note", 5, String(data="x"))
+            raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []
+    # with overwrite, a failure leaves the previous bag untouched
+    first = _write_sample(out)
+    with pytest.raises(RuntimeError):
+        with BagWriter(out, overwrite=True) as bag:
+            bag.add_topic("/note", "std_msgs/msg/String")
+            raise RuntimeError("boom")
+    assert [p.name for p in tmp_path.iterdir()] == ["bag"]
+    with BagReader(out) as reader:
+        assert list(reader.messages()) == first
+
+
+def test_topic_errors(tmp_path: Path) -> None:
+    out = tmp_path / "bag"
+    with pytest.raises(BagTopicError, match="/other"):
+        with BagWriter(out) as bag:
+            bag.add_topic("/note", "std_msgs/msg/String")
+            bag.write("/other", 1, String(data="x"))
+    assert not out.exists()
+    with pytest.raises(BagTopicError, match="no_pkg/msg/Nope"):
+        with BagWriter(out) as bag:
+            bag.add_topic("/x", "no_pkg/msg/Nope")
+    with pytest.raises(BagTopicError, match="qos"):
+        with BagWriter(out) as bag:
+            bag.add_topic("/x", "std_msgs/msg/String", qos="fast")
+    with pytest.raises(BagTopicError, match="twice"):
+        with BagWriter(out) as bag:
+            bag.add_topic("/x", "std_msgs/msg/String")
+            bag.add_topic("/x", "std_msgs/msg/String")
+    _write_sample(out)
+    with BagReader(out) as bag:
+        with pytest.raises(BagTopicError, match="/nope not in bag"):
+            list(bag.messages(["/nope"]))
+    shutil.rmtree(out)
