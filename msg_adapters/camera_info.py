@@ -1,0 +1,98 @@
+"""sensor_msgs/CameraInfo <-> owl_core.camera.CameraModel.
+
+Distortion models: ``plumb_bob`` (k1 k2 p1 p2 k3), ``rational_polynomial`` (k1 k2 p1 p2 k3
+k4 k5 k6), ``equidistant`` (k1 k2 k3 k4). A plumb_bob or rational_polynomial with all-zero
+(or empty) D, and an empty model name with empty D, is the distortion-free model "none"
+(same projection, cheaper to invert); ``camera_model_to_info`` writes "none" as plumb_bob
+with five zeros, which is what ROS calibration tools expect, so model -> info -> model is
+exact for every model. Trailing zeros beyond a model's coefficient count are ignored.
+
+Binning and ROI follow image_geometry: the returned model describes the image actually
+published (size ``roi`` / binning; ``cx' = (cx - x_offset) / binning_x``, ``fx' = fx /
+binning_x``, likewise for y).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from sensor_msgs.msg import CameraInfo
+
+from msg_adapters.errors import CameraInfoError
+from owl_core.camera import DISTORTION_MODELS, CameraModel
+from owl_core.errors import CalibrationError
+
+#: ROS distortion model names accepted from CameraInfo.
+ROS_DISTORTION_MODELS: tuple[str, ...] = ("plumb_bob", "rational_polynomial", "equidistant")
+#: models for which all-zero coefficients mean "no distortion".
+_ZERO_IS_NONE = ("plumb_bob", "rational_polynomial")
+
+
+def _distortion(model: str, d: np.ndarray[Any, np.dtype[np.float64]]) -> tuple[str, Any]:
+    if model == "" and not np.any(d):
+        return "none", np.zeros(0)
+    if model not in ROS_DISTORTION_MODELS:
+        raise CameraInfoError(
+            f"camera_info.distortion_model {model!r} is not supported; expected one of "
+            f"{', '.join(ROS_DISTORTION_MODELS)}"
+        )
+    if model in _ZERO_IS_NONE and not np.any(d):
+        return "none", np.zeros(0)
+    count = DISTORTION_MODELS[model]
+    if d.shape[0] > count and not np.any(d[count:]):
+        d = d[:count]
+    return model, d
+
+
+def camera_info_to_model(msg: Any) -> CameraModel:
+    """CameraInfo -> CameraModel of the published image (binning and ROI applied).
+
+    Raises:
+        CameraInfoError: all-zero K (uncalibrated camera), unsupported distortion_model,
+            wrong number of D coefficients, zero size or any other invalid calibration
+            (the message names the field and value).
+    """
+    k = np.asarray(msg.k, dtype=np.float64).reshape(3, 3).copy()
+    if not np.any(k):
+        raise CameraInfoError(
+            f"camera_info.k is all zero (uncalibrated camera, frame_id {msg.header.frame_id!r})"
+        )
+    model, d = _distortion(str(msg.distortion_model), np.asarray(msg.d, dtype=np.float64))
+    bx, by = max(1, int(msg.binning_x)), max(1, int(msg.binning_y))
+    roi = msg.roi
+    has_roi = int(roi.width) > 0 and int(roi.height) > 0
+    width = int(roi.width) if has_roi else int(msg.width)
+    height = int(roi.height) if has_roi else int(msg.height)
+    if has_roi:
+        k[0, 2] -= float(roi.x_offset)
+        k[1, 2] -= float(roi.y_offset)
+    if bx > 1 or by > 1:
+        k[0, :] /= bx
+        k[1, :] /= by
+        width //= bx
+        height //= by
+    try:
+        return CameraModel(width, height, k, d, model)
+    except CalibrationError as exc:
+        raise CameraInfoError(f"camera_info: {exc}") from exc
+
+
+def camera_model_to_info(model: CameraModel, header: Any = None) -> Any:
+    """CameraModel -> CameraInfo (R = identity, P = [K | 0], no binning, no ROI)."""
+    msg = CameraInfo()
+    if header is not None:
+        msg.header = header
+    msg.width = model.width
+    msg.height = model.height
+    if model.distortion_model == "none":
+        msg.distortion_model = "plumb_bob"
+        msg.d = [0.0] * DISTORTION_MODELS["plumb_bob"]
+    else:
+        msg.distortion_model = model.distortion_model
+        msg.d = [float(c) for c in model.D]
+    k = np.asarray(model.K, dtype=np.float64)
+    msg.k = k.reshape(9).copy()
+    msg.r = np.eye(3).reshape(9)
+    msg.p = np.hstack([k, np.zeros((3, 1))]).reshape(12)
+    return msg
