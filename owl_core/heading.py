@@ -1,0 +1,480 @@
+"""Fused heading, leftover rotation (gyro bias) and independently moving points.
+
+For a static scene every derotated bearing rate satisfies the coplanarity constraint
+``t . (e_i x f_i) = 0``. When the derotation used a slightly wrong rate (gyro bias), the
+measured ``f_i`` misses ``delta x e_i`` where ``delta`` is the leftover camera-frame rotation
+rate (rad/s): ``f_true = f_i + delta x e_i``, so the constraint becomes
+
+    h . (e_i x f_i) + delta . (h - (h.e_i) e_i) = 0,        h = t/|t|,
+
+five unknowns (two for ``h``, three for ``delta``), bilinear. :func:`estimate_motion` solves
+it robustly: a 2-point RANSAC for ``h`` (vectorised over hypotheses), then Gauss-Newton with
+Cauchy weights on (h, delta) with a Gaussian prior on ``delta`` (the bias filter's
+uncertainty plus the gyro noise), and reports the 1-sigma heading uncertainty. When the flow
+is explained by a rotation alone (the camera does not translate) it returns no heading and
+reads ``delta`` directly from the flow. :class:`GyroBiasFilter` filters the bias over time
+(random walk), in the IMU frame.
+
+The residual used throughout is ``h.(e x f_true)/|h x e|``: the component of ``f_true`` across
+the epipolar great circle through ``e``, in 1/s, whose noise equals the per-axis noise of f.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from owl_core.errors import InvalidInputError
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class HeadingOptions:
+    """Settings of :func:`estimate_motion`.
+
+    Attributes:
+        ransac_hypotheses: number of 2-point heading hypotheses scored at once.
+        starts: Gauss-Newton refinements run from this many of the best distinct hypotheses.
+        inlier_sigma: a point is an inlier (static) when its coplanarity residual is below
+            this many of its standard deviations.
+        irls_iterations: Gauss-Newton / reweighting iterations on (heading, rotation).
+        cauchy_sigma: Cauchy robust-loss scale, in residual standard deviations.
+        min_points: fewer usable points than this -> no estimate.
+        min_sin: residual normaliser floor for |h x e| (points near the focus of expansion).
+        still_ratio: the camera is declared not translating when the robust RMS of the
+            flow left after a rotation-only fit is below ``still_ratio`` times the flow noise.
+        min_translation_snr: ... or when the median translational flow across all points is
+            below this many noise sigmas (too little parallax for a heading).
+    """
+
+    ransac_hypotheses: int = 128
+    starts: int = 4
+    inlier_sigma: float = 3.0
+    irls_iterations: int = 6
+    cauchy_sigma: float = 2.5
+    min_points: int = 8
+    min_sin: float = 0.05
+    still_ratio: float = 2.0
+    min_translation_snr: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.ransac_hypotheses < 1:
+            raise InvalidInputError(
+                f"ransac_hypotheses must be >= 1, got {self.ransac_hypotheses}"
+            )
+        if self.min_points < 3:
+            raise InvalidInputError(f"min_points must be >= 3, got {self.min_points}")
+        for name in ("inlier_sigma", "cauchy_sigma", "min_sin", "still_ratio"):
+            if not getattr(self, name) > 0:
+                raise InvalidInputError(f"{name} must be > 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class MotionEstimate:
+    """What the flow of one frame says about the camera motion. N = number of points.
+
+    Attributes:
+        heading: (3,) unit translation direction t/|t| (camera frame), or None when the
+            camera does not translate or there are too few points.
+        heading_sigma_rad: 1-sigma (RMS) angular uncertainty of ``heading``, rad; inf if None.
+        rotation_error: (3,) leftover rotation rate delta, camera frame, rad/s
+            (f_true = f + delta x e); the gyro bias estimate should move by -delta.
+        rotation_cov: (3, 3) posterior covariance of ``rotation_error`` (it includes the
+            prior), (rad/s)^2.
+        translating: False when a rotation alone explains the flow.
+        inliers: (N,) bool, points consistent with the static-scene motion.
+        residuals: (N,) float64 normalised coplanarity residuals (in standard deviations);
+            NaN for points not used.
+        reason: empty, or why there is no heading.
+    """
+
+    heading: FloatArray | None
+    heading_sigma_rad: float
+    rotation_error: FloatArray
+    rotation_cov: FloatArray
+    translating: bool
+    inliers: BoolArray
+    residuals: FloatArray
+    reason: str = ""
+
+
+def _skew_batch(v: FloatArray) -> FloatArray:
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def _orthonormal(h: FloatArray) -> tuple[FloatArray, FloatArray]:
+    helper = np.zeros(3)
+    helper[int(np.argmin(np.abs(h)))] = 1.0
+    u1 = np.cross(helper, h)
+    u1 /= np.linalg.norm(u1)
+    return u1, np.cross(h, u1)
+
+
+def coplanarity_residuals(
+    heading: npt.ArrayLike,
+    bearings: npt.ArrayLike,
+    derotated: npt.ArrayLike,
+    rotation_error: npt.ArrayLike | None = None,
+    min_sin: float = 0.05,
+) -> FloatArray:
+    """Coplanarity residuals ``h.(e x (f + delta x e))/max(|h x e|, min_sin)``, 1/s.
+
+    Args:
+        heading: (3,) unit heading, or (M, 3) for M hypotheses at once.
+        bearings: (N, 3) unit bearings.
+        derotated: (N, 3) derotated bearing rates, 1/s.
+        rotation_error: (3,) leftover rotation delta, rad/s (default zero).
+        min_sin: floor of the normaliser |h x e|.
+
+    Returns:
+        (N,) or (M, N) float64 residuals, 1/s (zero for a static point and exact data).
+    """
+    e = np.asarray(bearings, dtype=np.float64)
+    f = np.asarray(derotated, dtype=np.float64)
+    if e.ndim != 2 or e.shape[1] != 3 or f.shape != e.shape:
+        raise InvalidInputError(
+            f"bearings and derotated must both have shape (N, 3), got {e.shape} and {f.shape}"
+        )
+    h = np.asarray(heading, dtype=np.float64)
+    if h.shape[-1:] != (3,) or h.ndim > 2:
+        raise InvalidInputError(f"heading must have shape (3,) or (M, 3), got {h.shape}")
+    if rotation_error is not None:
+        f = f + np.cross(np.asarray(rotation_error, dtype=np.float64), e)
+    n = np.cross(e, f)
+    num = h @ n.T
+    sin = np.linalg.norm(np.cross(h[..., None, :], e), axis=-1)
+    return np.asarray(num / np.maximum(sin, min_sin), dtype=np.float64)
+
+
+def _rotation_only(
+    e: FloatArray, f: FloatArray, sigma: FloatArray, prior_inv: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Fit f = e x delta' (no translation; delta' = -delta) robustly. Returns delta, cov, res."""
+    a = _skew_batch(e)  # e x d = skew(e) d
+    w = 1.0 / sigma**2
+    delta_p = np.zeros(3)
+    res = np.zeros(e.shape[0])
+    cov = np.eye(3)
+    for _ in range(4):
+        normal = np.einsum("n,nai,naj->ij", w, a, a) + prior_inv
+        rhs = np.einsum("n,nai,na->i", w, a, f)
+        cov = np.linalg.inv(normal)
+        delta_p = cov @ rhs
+        r = f - a @ delta_p
+        res = np.sqrt(np.einsum("na,na->n", r, r)) / sigma
+        w = 1.0 / sigma**2 / (1.0 + (res / 3.0) ** 2)
+    # f_true = f + delta x e = 0  <=>  f = e x delta, so delta = delta'.
+    return delta_p, cov, res
+
+
+def _refine(
+    h0: FloatArray,
+    eu: FloatArray,
+    fu: FloatArray,
+    su: FloatArray,
+    nvec: FloatArray,
+    prior_inv: FloatArray,
+    opts: HeadingOptions,
+    estimate_rotation: bool,
+) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+    """Gauss-Newton on (h, delta) from h0: Cauchy weights, then two hard-inlier iterations.
+
+    Returns (robust cost, h, delta, 5x5 covariance of (two heading angles, delta)).
+    """
+    h = h0 / np.linalg.norm(h0)
+    if np.sum(fu @ h) > 0:  # f = -t_perp/r: f . t < 0 for static points in front
+        h = -h
+    delta = np.zeros(3)
+    cov = np.eye(5)
+    for it in range(opts.irls_iterations + 2):
+        u1, u2 = _orthonormal(h)
+        sin = np.maximum(np.linalg.norm(np.cross(h, eu), axis=1), opts.min_sin)
+        scale = sin * su
+        tperp = h[None, :] - (eu @ h)[:, None] * eu  # d raw / d delta
+        res = (nvec @ h + tperp @ delta) / scale
+        if it < opts.irls_iterations:
+            w = 1.0 / (1.0 + (res / opts.cauchy_sigma) ** 2)
+        else:
+            w = (np.abs(res) < opts.inlier_sigma).astype(np.float64)
+        dh = nvec + delta[None, :] - (eu @ delta)[:, None] * eu  # d raw / d h
+        jac = np.column_stack([dh @ u1, dh @ u2, tperp]) / scale[:, None]  # (N, 5)
+        if not estimate_rotation:
+            jac[:, 2:] = 0.0
+        normal = np.einsum("n,ni,nj->ij", w, jac, jac)
+        normal[2:, 2:] += prior_inv
+        rhs = -np.einsum("n,ni,n->i", w, jac, res)
+        rhs[2:] -= prior_inv @ delta
+        step = np.linalg.solve(normal + 1e-12 * np.eye(5), rhs)
+        h = h + step[0] * u1 + step[1] * u2
+        h /= np.linalg.norm(h)
+        delta = delta + step[2:]
+        cov = np.linalg.inv(normal + 1e-12 * np.eye(5))
+    sin = np.maximum(np.linalg.norm(np.cross(h, eu), axis=1), opts.min_sin)
+    res = (nvec @ h + (h[None, :] - (eu @ h)[:, None] * eu) @ delta) / (sin * su)
+    cost = float(np.sum(np.log1p((res / opts.cauchy_sigma) ** 2)) + delta @ prior_inv @ delta)
+    return cost, h, delta, cov
+
+
+def estimate_motion(
+    bearings: npt.ArrayLike,
+    derotated: npt.ArrayLike,
+    flow_sigma: float | npt.ArrayLike,
+    rotation_prior_cov: npt.ArrayLike,
+    *,
+    options: HeadingOptions | None = None,
+    rng: np.random.Generator | None = None,
+    estimate_rotation: bool = True,
+) -> MotionEstimate:
+    """Robust joint estimate of the heading and the leftover rotation from N flows.
+
+    Args:
+        bearings: (N, 3) unit bearings e, camera frame.
+        derotated: (N, 3) derotated bearing rates f, 1/s (gyro, minus current bias, removed).
+        flow_sigma: scalar or (N,) 1-sigma noise of each component of f, 1/s.
+        rotation_prior_cov: (3, 3) prior covariance of the leftover rotation delta (zero
+            mean), (rad/s)^2, camera frame: bias uncertainty plus gyro noise.
+        options: :class:`HeadingOptions`.
+        rng: random generator for RANSAC (default: seeded, deterministic).
+        estimate_rotation: False fixes delta = 0 (heading only, 2 unknowns).
+
+    Returns:
+        :class:`MotionEstimate`.
+    """
+    opts = options or HeadingOptions()
+    e = np.asarray(bearings, dtype=np.float64)
+    f = np.asarray(derotated, dtype=np.float64)
+    if e.ndim != 2 or e.shape[1] != 3 or f.shape != e.shape:
+        raise InvalidInputError(
+            f"bearings and derotated must both have shape (N, 3), got {e.shape} and {f.shape}"
+        )
+    n = e.shape[0]
+    sigma = np.broadcast_to(np.asarray(flow_sigma, dtype=np.float64), (n,)).copy()
+    prior = np.asarray(rotation_prior_cov, dtype=np.float64)
+    if prior.shape != (3, 3):
+        raise InvalidInputError(f"rotation_prior_cov must have shape (3, 3), got {prior.shape}")
+    rng = rng or np.random.default_rng(0)
+    usable = np.all(np.isfinite(e), axis=1) & np.all(np.isfinite(f), axis=1)
+    usable &= np.isfinite(sigma) & (sigma > 0)
+    residuals = np.full(n, np.nan)
+    none_inliers = np.zeros(n, dtype=bool)
+    zero3 = np.zeros(3)
+    if int(usable.sum()) < opts.min_points:
+        return MotionEstimate(
+            None, np.inf, zero3, prior.copy(), False, none_inliers, residuals,
+            f"too few points with flow for a heading: {int(usable.sum())} < {opts.min_points}",
+        )  # fmt: skip
+    eu, fu, su = e[usable], f[usable], sigma[usable]
+    prior_inv: FloatArray = (
+        np.asarray(np.linalg.inv(prior + 1e-18 * np.eye(3)), dtype=np.float64)
+        if estimate_rotation
+        else np.eye(3) * 1e18
+    )
+
+    # 1. Does a rotation alone explain the flow?
+    rot_delta, rot_cov, rot_res = _rotation_only(eu, fu, su, prior_inv)
+    robust_rms = float(np.median(rot_res)) / 1.1774  # median of a chi(2) variable
+    flow_snr = float(np.median(np.linalg.norm(fu, axis=1) / su))
+    if robust_rms < opts.still_ratio or flow_snr < opts.min_translation_snr:
+        inl = np.zeros(n, dtype=bool)
+        inl[usable] = rot_res < opts.inlier_sigma * 1.5
+        return MotionEstimate(
+            None, np.inf, rot_delta, rot_cov, False, inl, residuals,
+            "no translation: the flow is explained by a rotation alone "
+            f"(residual {robust_rms:.2f} sigma, flow {flow_snr:.1f} sigma)",
+        )  # fmt: skip
+
+    # 2. RANSAC on the heading with delta = 0: h = n_a x n_b for two random points.
+    nvec = np.cross(eu, fu)
+    m = opts.ransac_hypotheses
+    pairs = rng.integers(0, eu.shape[0], size=(m, 2))
+    hyp = np.cross(nvec[pairs[:, 0]], nvec[pairs[:, 1]])
+    hn = np.linalg.norm(hyp, axis=1)
+    hyp = hyp[hn > 0] / hn[hn > 0, None]
+    if hyp.shape[0] == 0:
+        hyp = np.array([[0.0, 0.0, 1.0]])
+    res_h = coplanarity_residuals(hyp, eu, fu, min_sin=opts.min_sin) / su
+    # Prior rotation uncertainty widens the gate: delta moves each residual by up to |delta|.
+    gate = opts.inlier_sigma + np.sqrt(np.trace(prior)) / np.median(su)
+    score = np.sum(np.minimum((res_h / gate) ** 2, 1.0), axis=1)  # MSAC
+    order = np.argsort(score)
+    starts: list[FloatArray] = []
+    for idx in order:
+        cand = hyp[idx]
+        if all(abs(float(cand @ s0)) < np.cos(np.radians(2.0)) for s0 in starts):
+            starts.append(cand)
+        if len(starts) >= opts.starts:
+            break
+
+    # 3. Gauss-Newton with Cauchy weights on (h, delta), prior on delta, from each start;
+    # keep the lowest robust cost (the bilinear problem has local minima).
+    best: tuple[float, FloatArray, FloatArray, FloatArray] | None = None
+    for h0 in starts:
+        cost, h, delta, cov = _refine(h0, eu, fu, su, nvec, prior_inv, opts, estimate_rotation)
+        if best is None or cost < best[0]:
+            best = (cost, h, delta, cov)
+    if best is None:  # pragma: no cover - starts always has one entry
+        raise InvalidInputError("no heading hypothesis")
+    _, h, delta, cov = best
+    # final residuals and covariance at the solution
+    sin = np.maximum(np.linalg.norm(np.cross(h, eu), axis=1), opts.min_sin)
+    raw = nvec @ h + (h[None, :] - (eu @ h)[:, None] * eu) @ delta
+    res = raw / (sin * su)
+    inl_u = np.abs(res) < opts.inlier_sigma
+    # point in front: f_true . h < 0 (allow noise)
+    f_true = fu + np.cross(delta, eu)
+    inl_u &= (f_true @ h) < opts.inlier_sigma * su * sin
+    # Scale the covariance by the inliers' residual variance when it exceeds the model's
+    # (a 3-sigma gate keeps 97.3 % of a unit normal, whose truncated variance is 0.9733).
+    inl_res = res[np.abs(res) < opts.inlier_sigma]
+    chi2 = float(np.sum(inl_res**2)) / max(inl_res.size - 5.0, 1.0) / 0.9733
+    cov = cov * max(chi2, 1.0)
+    if np.sum(f_true[inl_u] @ h) > 0:
+        h = -h
+    residuals[usable] = res
+    inliers = np.zeros(n, dtype=bool)
+    inliers[usable] = inl_u
+    if int(inl_u.sum()) < opts.min_points:
+        return MotionEstimate(
+            None, np.inf, zero3, prior.copy(), True, inliers, residuals,
+            f"too few static points agree on a heading: {int(inl_u.sum())} < {opts.min_points}",
+        )  # fmt: skip
+    heading_sigma = float(np.sqrt(cov[0, 0] + cov[1, 1]))
+    rot_cov = cov[2:, 2:] if estimate_rotation else prior.copy()
+    return MotionEstimate(h, heading_sigma, delta, rot_cov, True, inliers, residuals)
+
+
+def point_heading_disagreement(
+    point_headings: npt.ArrayLike, heading: npt.ArrayLike
+) -> FloatArray:
+    """Angle between each per-point heading and the fused heading, rad (NaN where undefined).
+
+    Args:
+        point_headings: (N, 3) unit per-point headings (NaN rows allowed).
+        heading: (3,) unit fused heading.
+
+    Returns:
+        (N,) float64 angles in [0, pi], rad.
+    """
+    ph = np.asarray(point_headings, dtype=np.float64)
+    h = np.asarray(heading, dtype=np.float64)
+    cross = np.linalg.norm(np.cross(ph, h), axis=-1)
+    return np.asarray(np.arctan2(cross, ph @ h), dtype=np.float64)
+
+
+class GyroBiasFilter:
+    """Kalman filter on the gyro bias (IMU frame, rad/s) with a random-walk model.
+
+    Args:
+        camera_to_imu: (3, 3) rotation taking camera-frame vectors into the IMU frame
+            (default identity).
+        initial_sigma: 1-sigma of the initial bias, rad/s per axis.
+        random_walk: bias random-walk density, rad/s/sqrt(s).
+        initial_bias: (3,) initial bias, IMU frame, rad/s.
+    """
+
+    def __init__(
+        self,
+        camera_to_imu: npt.ArrayLike | None = None,
+        initial_sigma: float = 0.02,
+        random_walk: float = 1e-4,
+        initial_bias: npt.ArrayLike = (0.0, 0.0, 0.0),
+    ) -> None:
+        rot = np.eye(3) if camera_to_imu is None else np.asarray(camera_to_imu, dtype=np.float64)
+        if rot.shape != (3, 3):
+            raise InvalidInputError(f"camera_to_imu must have shape (3, 3), got {rot.shape}")
+        if not initial_sigma > 0 or not random_walk >= 0:
+            raise InvalidInputError(
+                f"initial_sigma must be > 0 and random_walk >= 0, got {initial_sigma}, "
+                f"{random_walk}"
+            )
+        b0 = np.asarray(initial_bias, dtype=np.float64)
+        if b0.shape != (3,):
+            raise InvalidInputError(f"initial_bias must have shape (3,), got {b0.shape}")
+        self._rot = rot
+        self._initial_sigma = float(initial_sigma)
+        self._random_walk = float(random_walk)
+        self._initial_bias = b0.copy()
+        self.bias = b0.copy()
+        self.cov = np.eye(3) * initial_sigma**2
+        self.updates = 0
+
+    def reset(self) -> None:
+        """Back to the initial bias and uncertainty."""
+        self.bias = self._initial_bias.copy()
+        self.cov = np.eye(3) * self._initial_sigma**2
+        self.updates = 0
+
+    @property
+    def bias_camera(self) -> FloatArray:
+        """(3,) bias in the camera frame, rad/s."""
+        return np.asarray(self._rot.T @ self.bias, dtype=np.float64)
+
+    @property
+    def cov_camera(self) -> FloatArray:
+        """(3, 3) bias covariance in the camera frame, (rad/s)^2."""
+        return np.asarray(self._rot.T @ self.cov @ self._rot, dtype=np.float64)
+
+    def predict(self, dt_s: float) -> None:
+        """Grow the uncertainty by the random walk over ``dt_s`` seconds (>= 0)."""
+        if not dt_s >= 0:
+            raise InvalidInputError(f"dt_s must be >= 0, got {dt_s}")
+        self.cov = self.cov + np.eye(3) * self._random_walk**2 * dt_s
+
+    def update(
+        self,
+        rotation_error_cam: npt.ArrayLike,
+        posterior_cov_cam: npt.ArrayLike,
+        prior_cov_cam: npt.ArrayLike,
+        inflation: float = 1.0,
+    ) -> None:
+        """Apply one frame's leftover-rotation estimate (camera frame, relative to ``bias``).
+
+        :func:`estimate_motion` returns a posterior that already includes its prior
+        ``prior_cov_cam`` (zero mean); the information the frame added is
+        ``inv(posterior) - inv(prior)``. It is divided by ``inflation`` (>= 1; consecutive
+        frames share tracks, so their errors are correlated) and fused with the current
+        state. A leftover rotation delta means the true bias is ``bias - delta`` (rotated
+        into the IMU frame).
+
+        Args:
+            rotation_error_cam: (3,) posterior delta, camera frame, rad/s.
+            posterior_cov_cam: (3, 3) its posterior covariance, (rad/s)^2.
+            prior_cov_cam: (3, 3) the prior covariance the estimate used, (rad/s)^2.
+            inflation: measurement-information divisor, >= 1.
+        """
+        d = np.asarray(rotation_error_cam, dtype=np.float64)
+        c = np.asarray(posterior_cov_cam, dtype=np.float64)
+        p = np.asarray(prior_cov_cam, dtype=np.float64)
+        if d.shape != (3,) or c.shape != (3, 3) or p.shape != (3, 3) or not np.all(np.isfinite(d)):
+            raise InvalidInputError(
+                f"rotation error must be finite (3,) with (3, 3) covariances, got {d}, "
+                f"{c.shape}, {p.shape}"
+            )
+        if not inflation >= 1.0:
+            raise InvalidInputError(f"inflation must be >= 1, got {inflation}")
+        info_post = np.linalg.inv(c)
+        info_prior = np.linalg.inv(p)
+        info_meas = info_post - info_prior
+        vals, vecs = np.linalg.eigh(0.5 * (info_meas + info_meas.T))
+        info_meas = (vecs * np.maximum(vals, 0.0)) @ vecs.T / inflation
+        y = info_post @ d / inflation
+        cov_cam = self.cov_camera
+        info_state = np.linalg.inv(cov_cam)
+        new_cov_cam = np.linalg.inv(info_state + info_meas)
+        # the state's own mean in delta-space is 0 (the derotation used self.bias)
+        delta = new_cov_cam @ y
+        self.bias = self.bias - self._rot @ delta
+        self.cov = self._rot @ new_cov_cam @ self._rot.T
+        self.cov = 0.5 * (self.cov + self.cov.T)
+        self.updates += 1
