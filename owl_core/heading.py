@@ -49,6 +49,8 @@ class HeadingOptions:
             flow left after a rotation-only fit is below ``still_ratio`` times the flow noise.
         min_translation_snr: ... or when the median translational flow across all points is
             below this many noise sigmas (too little parallax for a heading).
+        max_points: the estimate uses at most this many points (an even subsample); the
+            residuals and inlier flags are still computed for every point.
     """
 
     ransac_hypotheses: int = 128
@@ -60,6 +62,7 @@ class HeadingOptions:
     min_sin: float = 0.05
     still_ratio: float = 2.0
     min_translation_snr: float = 3.0
+    max_points: int = 400
 
     def __post_init__(self) -> None:
         if self.ransac_hypotheses < 1:
@@ -102,17 +105,6 @@ class MotionEstimate:
     reason: str = ""
 
 
-def _skew_batch(v: FloatArray) -> FloatArray:
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1] = -v[..., 2]
-    out[..., 0, 2] = v[..., 1]
-    out[..., 1, 0] = v[..., 2]
-    out[..., 1, 2] = -v[..., 0]
-    out[..., 2, 0] = -v[..., 1]
-    out[..., 2, 1] = v[..., 0]
-    return out
-
-
 def _orthonormal(h: FloatArray) -> tuple[FloatArray, FloatArray]:
     helper = np.zeros(3)
     helper[int(np.argmin(np.abs(h)))] = 1.0
@@ -153,7 +145,8 @@ def coplanarity_residuals(
         f = f + np.cross(np.asarray(rotation_error, dtype=np.float64), e)
     n = np.cross(e, f)
     num = h @ n.T
-    sin = np.linalg.norm(np.cross(h[..., None, :], e), axis=-1)
+    hn = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    sin = np.sqrt(np.maximum(1.0 - (hn @ e.T) ** 2, 0.0))  # |h x e| for unit e
     return np.asarray(num / np.maximum(sin, min_sin), dtype=np.float64)
 
 
@@ -161,17 +154,18 @@ def _rotation_only(
     e: FloatArray, f: FloatArray, sigma: FloatArray, prior_inv: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Fit f = e x delta' (no translation; delta' = -delta) robustly. Returns delta, cov, res."""
-    a = _skew_batch(e)  # e x d = skew(e) d
+    # e x d = skew(e) d; skew(e)^T skew(e) = I - e e^T and skew(e)^T f = f x e (unit e).
+    fxe = np.cross(f, e)
     w = 1.0 / sigma**2
     delta_p = np.zeros(3)
     res = np.zeros(e.shape[0])
-    cov = np.eye(3)
+    cov: FloatArray = np.eye(3)
     for _ in range(4):
-        normal = np.einsum("n,nai,naj->ij", w, a, a) + prior_inv
-        rhs = np.einsum("n,nai,na->i", w, a, f)
+        normal = np.eye(3) * np.sum(w) - (e * w[:, None]).T @ e + prior_inv
+        rhs = w @ fxe
         cov = np.linalg.inv(normal)
         delta_p = cov @ rhs
-        r = f - a @ delta_p
+        r = f - np.cross(e, delta_p)
         res = np.sqrt(np.einsum("na,na->n", r, r)) / sigma
         w = 1.0 / sigma**2 / (1.0 + (res / 3.0) ** 2)
     # f_true = f + delta x e = 0  <=>  f = e x delta, so delta = delta'.
@@ -196,12 +190,13 @@ def _refine(
     if np.sum(fu @ h) > 0:  # f = -t_perp/r: f . t < 0 for static points in front
         h = -h
     delta = np.zeros(3)
-    cov = np.eye(5)
+    cov: FloatArray = np.eye(5)
     for it in range(opts.irls_iterations + 2):
         u1, u2 = _orthonormal(h)
-        sin = np.maximum(np.linalg.norm(np.cross(h, eu), axis=1), opts.min_sin)
+        cos = eu @ h
+        sin = np.maximum(np.sqrt(np.maximum(1.0 - cos * cos, 0.0)), opts.min_sin)
         scale = sin * su
-        tperp = h[None, :] - (eu @ h)[:, None] * eu  # d raw / d delta
+        tperp = h[None, :] - cos[:, None] * eu  # d raw / d delta
         res = (nvec @ h + tperp @ delta) / scale
         if it < opts.irls_iterations:
             w = 1.0 / (1.0 + (res / opts.cauchy_sigma) ** 2)
@@ -211,17 +206,19 @@ def _refine(
         jac = np.column_stack([dh @ u1, dh @ u2, tperp]) / scale[:, None]  # (N, 5)
         if not estimate_rotation:
             jac[:, 2:] = 0.0
-        normal = np.einsum("n,ni,nj->ij", w, jac, jac)
+        wj = jac * w[:, None]
+        normal = wj.T @ jac
         normal[2:, 2:] += prior_inv
-        rhs = -np.einsum("n,ni,n->i", w, jac, res)
+        rhs = -(wj.T @ res)
         rhs[2:] -= prior_inv @ delta
         step = np.linalg.solve(normal + 1e-12 * np.eye(5), rhs)
         h = h + step[0] * u1 + step[1] * u2
         h /= np.linalg.norm(h)
         delta = delta + step[2:]
         cov = np.linalg.inv(normal + 1e-12 * np.eye(5))
-    sin = np.maximum(np.linalg.norm(np.cross(h, eu), axis=1), opts.min_sin)
-    res = (nvec @ h + (h[None, :] - (eu @ h)[:, None] * eu) @ delta) / (sin * su)
+    cos = eu @ h
+    sin = np.maximum(np.sqrt(np.maximum(1.0 - cos * cos, 0.0)), opts.min_sin)
+    res = (nvec @ h + (h[None, :] - cos[:, None] * eu) @ delta) / (sin * su)
     cost = float(np.sum(np.log1p((res / opts.cauchy_sigma) ** 2)) + delta @ prior_inv @ delta)
     return cost, h, delta, cov
 
@@ -235,6 +232,7 @@ def estimate_motion(
     options: HeadingOptions | None = None,
     rng: np.random.Generator | None = None,
     estimate_rotation: bool = True,
+    initial_heading: npt.ArrayLike | None = None,
 ) -> MotionEstimate:
     """Robust joint estimate of the heading and the leftover rotation from N flows.
 
@@ -247,6 +245,7 @@ def estimate_motion(
         options: :class:`HeadingOptions`.
         rng: random generator for RANSAC (default: seeded, deterministic).
         estimate_rotation: False fixes delta = 0 (heading only, 2 unknowns).
+        initial_heading: (3,) optional extra start (e.g. the previous frame's heading).
 
     Returns:
         :class:`MotionEstimate`.
@@ -275,6 +274,12 @@ def estimate_motion(
             f"too few points with flow for a heading: {int(usable.sum())} < {opts.min_points}",
         )  # fmt: skip
     eu, fu, su = e[usable], f[usable], sigma[usable]
+    # the estimate runs on an even subsample; residuals and flags cover every usable point
+    if eu.shape[0] > opts.max_points:
+        sub = np.linspace(0, eu.shape[0] - 1, opts.max_points).astype(np.int64)
+        es, fs, ss = eu[sub], fu[sub], su[sub]
+    else:
+        es, fs, ss = eu, fu, su
     prior_inv: FloatArray = (
         np.asarray(np.linalg.inv(prior + 1e-18 * np.eye(3)), dtype=np.float64)
         if estimate_rotation
@@ -282,12 +287,13 @@ def estimate_motion(
     )
 
     # 1. Does a rotation alone explain the flow?
-    rot_delta, rot_cov, rot_res = _rotation_only(eu, fu, su, prior_inv)
+    rot_delta, rot_cov, rot_res = _rotation_only(es, fs, ss, prior_inv)
     robust_rms = float(np.median(rot_res)) / 1.1774  # median of a chi(2) variable
-    flow_snr = float(np.median(np.linalg.norm(fu, axis=1) / su))
+    flow_snr = float(np.median(np.linalg.norm(fs, axis=1) / ss))
     if robust_rms < opts.still_ratio or flow_snr < opts.min_translation_snr:
+        r_all = fu - np.cross(eu, rot_delta)
         inl = np.zeros(n, dtype=bool)
-        inl[usable] = rot_res < opts.inlier_sigma * 1.5
+        inl[usable] = np.sqrt(np.einsum("na,na->n", r_all, r_all)) / su < opts.inlier_sigma * 1.5
         return MotionEstimate(
             None, np.inf, rot_delta, rot_cov, False, inl, residuals,
             "no translation: the flow is explained by a rotation alone "
@@ -295,50 +301,55 @@ def estimate_motion(
         )  # fmt: skip
 
     # 2. RANSAC on the heading with delta = 0: h = n_a x n_b for two random points.
-    nvec = np.cross(eu, fu)
+    nvec = np.cross(es, fs)
     m = opts.ransac_hypotheses
-    pairs = rng.integers(0, eu.shape[0], size=(m, 2))
+    pairs = rng.integers(0, es.shape[0], size=(m, 2))
     hyp = np.cross(nvec[pairs[:, 0]], nvec[pairs[:, 1]])
     hn = np.linalg.norm(hyp, axis=1)
     hyp = hyp[hn > 0] / hn[hn > 0, None]
     if hyp.shape[0] == 0:
         hyp = np.array([[0.0, 0.0, 1.0]])
-    res_h = coplanarity_residuals(hyp, eu, fu, min_sin=opts.min_sin) / su
+    res_h = coplanarity_residuals(hyp, es, fs, min_sin=opts.min_sin) / ss
     # Prior rotation uncertainty widens the gate: delta moves each residual by up to |delta|.
-    gate = opts.inlier_sigma + np.sqrt(np.trace(prior)) / np.median(su)
+    gate = opts.inlier_sigma + np.sqrt(np.trace(prior)) / np.median(ss)
     score = np.sum(np.minimum((res_h / gate) ** 2, 1.0), axis=1)  # MSAC
     order = np.argsort(score)
     starts: list[FloatArray] = []
+    if initial_heading is not None:
+        h_init = np.asarray(initial_heading, dtype=np.float64)
+        if h_init.shape != (3,) or not np.all(np.isfinite(h_init)) or not np.any(h_init):
+            raise InvalidInputError(f"initial_heading must be a finite (3,) vector, got {h_init}")
+        starts.append(h_init / np.linalg.norm(h_init))
     for idx in order:
         cand = hyp[idx]
         if all(abs(float(cand @ s0)) < np.cos(np.radians(2.0)) for s0 in starts):
             starts.append(cand)
-        if len(starts) >= opts.starts:
+        if len(starts) >= opts.starts + (initial_heading is not None):
             break
 
     # 3. Gauss-Newton with Cauchy weights on (h, delta), prior on delta, from each start;
     # keep the lowest robust cost (the bilinear problem has local minima).
     best: tuple[float, FloatArray, FloatArray, FloatArray] | None = None
     for h0 in starts:
-        cost, h, delta, cov = _refine(h0, eu, fu, su, nvec, prior_inv, opts, estimate_rotation)
+        cost, h, delta, cov = _refine(h0, es, fs, ss, nvec, prior_inv, opts, estimate_rotation)
         if best is None or cost < best[0]:
             best = (cost, h, delta, cov)
     if best is None:  # pragma: no cover - starts always has one entry
         raise InvalidInputError("no heading hypothesis")
     _, h, delta, cov = best
-    # final residuals and covariance at the solution
-    sin = np.maximum(np.linalg.norm(np.cross(h, eu), axis=1), opts.min_sin)
-    raw = nvec @ h + (h[None, :] - (eu @ h)[:, None] * eu) @ delta
-    res = raw / (sin * su)
+    # Scale the covariance by the inliers' residual variance when it exceeds the model's
+    # (a 3-sigma gate keeps 97.3 % of a unit normal, whose truncated variance is 0.9733).
+    res_s = coplanarity_residuals(h, es, fs, delta, opts.min_sin) / ss
+    inl_res = res_s[np.abs(res_s) < opts.inlier_sigma]
+    chi2 = float(np.sum(inl_res**2)) / max(inl_res.size - 5.0, 1.0) / 0.9733
+    cov = cov * max(chi2, 1.0)
+    # final residuals and flags for every usable point
+    res = coplanarity_residuals(h, eu, fu, delta, opts.min_sin) / su
+    sin = np.maximum(np.sqrt(np.maximum(1.0 - (eu @ h) ** 2, 0.0)), opts.min_sin)
     inl_u = np.abs(res) < opts.inlier_sigma
     # point in front: f_true . h < 0 (allow noise)
     f_true = fu + np.cross(delta, eu)
     inl_u &= (f_true @ h) < opts.inlier_sigma * su * sin
-    # Scale the covariance by the inliers' residual variance when it exceeds the model's
-    # (a 3-sigma gate keeps 97.3 % of a unit normal, whose truncated variance is 0.9733).
-    inl_res = res[np.abs(res) < opts.inlier_sigma]
-    chi2 = float(np.sum(inl_res**2)) / max(inl_res.size - 5.0, 1.0) / 0.9733
-    cov = cov * max(chi2, 1.0)
     if np.sum(f_true[inl_u] @ h) > 0:
         h = -h
     residuals[usable] = res
