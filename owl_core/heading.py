@@ -163,7 +163,7 @@ def _rotation_only(
     for _ in range(4):
         normal = np.eye(3) * np.sum(w) - (e * w[:, None]).T @ e + prior_inv
         rhs = w @ fxe
-        cov = np.linalg.inv(normal)
+        cov = np.asarray(np.linalg.inv(normal), dtype=np.float64)
         delta_p = cov @ rhs
         r = f - np.cross(e, delta_p)
         res = np.sqrt(np.einsum("na,na->n", r, r)) / sigma
@@ -215,7 +215,7 @@ def _refine(
         h = h + step[0] * u1 + step[1] * u2
         h /= np.linalg.norm(h)
         delta = delta + step[2:]
-        cov = np.linalg.inv(normal + 1e-12 * np.eye(5))
+        cov = np.asarray(np.linalg.inv(normal + 1e-12 * np.eye(5)), dtype=np.float64)
     cos = eu @ h
     sin = np.maximum(np.sqrt(np.maximum(1.0 - cos * cos, 0.0)), opts.min_sin)
     res = (nvec @ h + (h[None, :] - cos[:, None] * eu) @ delta) / (sin * su)
