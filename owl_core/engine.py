@@ -1,0 +1,603 @@
+"""The OWL engine: images + gyro in, per-feature L, omega, RoT, scaled points and heading out.
+
+Per frame (:meth:`OwlEngine.process`):
+
+1. **track**: :class:`~owl_core.tracker.FeatureTracker` with LK initial positions predicted
+   from the gyro rotation since the previous frame (fast rotations keep their tracks).
+2. **integrate**: each track's last ``fit_frames`` positions become bearings
+   (:class:`~owl_core.camera.CameraModel`, distortion included), rotated into the current
+   camera frame with the gyro rotations (current bias removed); a weighted polynomial fit of
+   bearing against time gives the derotated bearing rate ``f`` at the current stamp and its
+   noise, so neither ``f`` nor the neighbours' relative motion rests on two frames.
+3. **heading**: :func:`~owl_core.heading.estimate_motion` finds the heading and the leftover
+   rotation (gyro-bias error) jointly; :class:`~owl_core.heading.GyroBiasFilter` filters the
+   bias; ``f`` is corrected by the leftover rotation. A camera that does not translate gives
+   no points (the reason says so) while the bias keeps updating.
+4. **looming**: L by the local deformation rule over each feature's image neighbours
+   (``scipy.spatial.cKDTree``), L by the heading route, fused by variance; then ToR, RoT,
+   r/|t|, scaled points; points whose coplanarity residual or whose two L routes disagree
+   beyond their noise are flagged MOVING.
+
+Everything is vectorised over features. Units: seconds, radians, pixels; time stamps are
+integer nanoseconds.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial import cKDTree
+
+from owl_core import heading as hd
+from owl_core import motion
+from owl_core.camera import CameraModel
+from owl_core.errors import InvalidInputError
+from owl_core.geometry import quat_xyzw_to_matrix
+from owl_core.gyro import GyroBuffer
+from owl_core.tracker import FeatureTracker, TrackerOptions
+from owl_core.types import FrameResult, GyroSamples, ImageFrame, PointFlag
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+__all__ = ["EngineOptions", "OwlEngine"]
+
+
+@dataclass(frozen=True)
+class EngineOptions:
+    """Every setting of :class:`OwlEngine`, with units.
+
+    Attributes:
+        camera_to_imu_rotation_xyzw: (x, y, z, w) quaternion of the rotation taking
+            camera-optical-frame vectors into the IMU frame (contract.md). Default identity.
+        imu_time_offset_s: IMU stamp minus camera stamp for simultaneous events, seconds.
+        require_gyro: True: frames without gyro coverage produce no points (reason given).
+            False: they are processed without derotation (the leftover rotation is then
+            estimated from the flow alone) and every point is flagged NO_GYRO (and IMU_GAP
+            when samples exist but do not cover the interval).
+        max_features: features tracked, count (passed to the tracker).
+        tracker: further tracker settings; its ``max_features`` is replaced by
+            ``max_features`` and its ``history_len`` raised to ``fit_frames`` if needed.
+        fit_frames: frames per track in the bearing-vs-time fit (>= 2; 2 = two-frame flow).
+        fit_order: polynomial order of that fit: 1 (straight line; its slope lags by half
+            the window) or 2 (quadratic, evaluated at the current stamp).
+        min_track_frames: tracks seen in fewer frames than this (>= 2) give no point.
+        pixel_noise_px: 1-sigma tracking noise per image axis, pixels.
+        neighbours: k nearest image neighbours used by the local looming rule, count.
+        neighbour_radius_px: neighbours farther than this are not used, pixels.
+        min_neighbours: fewer usable neighbours -> no L from the local rule, count (>= 3).
+        min_quality: points below this quality (0..1) are flagged LOW_QUALITY.
+        min_tor: |ToR| at or below this (1/s) means no translation signal at the point.
+        moving_sigma: a point whose coplanarity residual, or whose two L routes, differ by
+            more than this many standard deviations is flagged MOVING.
+        heading_min_sin: the heading route gives no L closer than asin(this) to the focus
+            of expansion (or its antipode), dimensionless.
+        estimate_bias: estimate the gyro bias from the flow (jointly with the heading).
+        initial_bias_imu: initial gyro bias, IMU frame, rad/s.
+        bias_initial_sigma: 1-sigma of the initial bias, rad/s per axis.
+        bias_random_walk: bias random-walk density, rad/s/sqrt(s).
+        gyro_noise_density: gyro white-noise density, rad/s/sqrt(Hz) (prior on the
+            leftover rotation of one fit window, together with the bias uncertainty).
+        bias_inflation: divisor (>= 1) of each frame's bias information (consecutive fit
+            windows share frames, so their errors are correlated).
+        no_gyro_rotation_sigma: prior 1-sigma of the camera rotation rate when frames are
+            processed without gyro, rad/s.
+        max_frame_gap_s: a larger gap between frames (or a stamp going backwards) resets
+            the tracks, seconds.
+        heading: options of the heading / leftover-rotation estimator.
+        seed: seed of the RANSAC random generator (results are deterministic).
+    """
+
+    camera_to_imu_rotation_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+    imu_time_offset_s: float = 0.0
+    require_gyro: bool = True
+    max_features: int = 1000
+    tracker: TrackerOptions = field(default_factory=TrackerOptions)
+    fit_frames: int = 5
+    fit_order: int = 2
+    min_track_frames: int = 3
+    pixel_noise_px: float = 0.15
+    neighbours: int = 10
+    neighbour_radius_px: float = 80.0
+    min_neighbours: int = 5
+    min_quality: float = 0.3
+    min_tor: float = 1e-6
+    moving_sigma: float = 4.0
+    heading_min_sin: float = 0.1
+    estimate_bias: bool = True
+    initial_bias_imu: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    bias_initial_sigma: float = 0.02
+    bias_random_walk: float = 1e-4
+    gyro_noise_density: float = 2e-3
+    bias_inflation: float = 3.0
+    no_gyro_rotation_sigma: float = 2.0
+    max_frame_gap_s: float = 0.5
+    heading: hd.HeadingOptions = field(default_factory=hd.HeadingOptions)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        q = tuple(self.camera_to_imu_rotation_xyzw)
+        if len(q) != 4 or not all(math.isfinite(v) for v in q):
+            raise InvalidInputError(
+                f"camera_to_imu_rotation_xyzw must be 4 finite numbers, got {q}"
+            )
+        if not math.isfinite(self.imu_time_offset_s):
+            raise InvalidInputError(
+                f"imu_time_offset_s must be finite, got {self.imu_time_offset_s}"
+            )
+        ints = {
+            "max_features": (self.max_features, 1),
+            "fit_frames": (self.fit_frames, 2),
+            "min_track_frames": (self.min_track_frames, 2),
+            "neighbours": (self.neighbours, 3),
+            "min_neighbours": (self.min_neighbours, 3),
+        }
+        for name, (value, low) in ints.items():
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise InvalidInputError(f"{name} must be an integer >= {low}, got {value!r}")
+        if self.fit_order not in (1, 2):
+            raise InvalidInputError(f"fit_order must be 1 or 2, got {self.fit_order!r}")
+        if self.min_track_frames > self.fit_frames:
+            raise InvalidInputError(
+                f"min_track_frames ({self.min_track_frames}) must not exceed fit_frames "
+                f"({self.fit_frames})"
+            )
+        if self.min_neighbours > self.neighbours:
+            raise InvalidInputError(
+                f"min_neighbours ({self.min_neighbours}) must not exceed neighbours "
+                f"({self.neighbours})"
+            )
+        positive = (
+            "pixel_noise_px",
+            "neighbour_radius_px",
+            "moving_sigma",
+            "heading_min_sin",
+            "bias_initial_sigma",
+            "gyro_noise_density",
+            "no_gyro_rotation_sigma",
+            "max_frame_gap_s",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise InvalidInputError(f"{name} must be positive and finite, got {value!r}")
+        for name in ("min_quality", "min_tor", "bias_random_walk"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InvalidInputError(f"{name} must be >= 0 and finite, got {value!r}")
+        if not self.bias_inflation >= 1.0:
+            raise InvalidInputError(f"bias_inflation must be >= 1, got {self.bias_inflation!r}")
+        if len(self.initial_bias_imu) != 3 or not all(
+            math.isfinite(v) for v in self.initial_bias_imu
+        ):
+            raise InvalidInputError(
+                f"initial_bias_imu must be 3 finite numbers, got {self.initial_bias_imu!r}"
+            )
+
+
+def _empty_result(
+    stamp_ns: int,
+    heading: FloatArray | None,
+    heading_sigma: float,
+    bias: FloatArray,
+    timings: dict[str, float],
+    reasons: list[str],
+    dropped: dict[str, int],
+) -> FrameResult:
+    return FrameResult(
+        stamp_ns=stamp_ns,
+        pixels=np.zeros((0, 2)),
+        bearings=np.zeros((0, 3)),
+        looming=np.zeros(0),
+        omega=np.zeros((0, 3)),
+        rot=np.zeros((0, 4)),
+        range_over_speed=np.zeros(0),
+        points=np.zeros((0, 3)),
+        quality=np.zeros(0),
+        ids=np.zeros(0, dtype=np.uint32),
+        flags=np.zeros(0, dtype=np.uint8),
+        heading=heading,
+        heading_sigma_rad=heading_sigma,
+        gyro_bias=bias.copy(),
+        timings=timings,
+        reasons=tuple(reasons),
+        dropped=dropped,
+    )
+
+
+def fit_tracks(
+    bearings: FloatArray, tau_s: FloatArray, mask: BoolArray, order: int
+) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """Weighted polynomial fit of bearing against time per track, evaluated at tau = 0.
+
+    Args:
+        bearings: (N, W, 3) bearings of each track, already in the current camera frame.
+        tau_s: (W,) time of each column relative to the current frame, seconds (<= 0).
+        mask: (N, W) bool, valid entries.
+        order: 1 or 2; tracks with fewer than order + 1 points fall back to order 1.
+
+    Returns:
+        rate: (N, 3) d(bearing)/dt at tau = 0, 1/s (NaN where invalid);
+        gain: (N,) standard deviation of the rate per unit bearing noise, 1/s
+            (rate sigma = gain * bearing sigma);
+        valid: (N,) bool, at least two frames with distinct times.
+    """
+    n = bearings.shape[0]
+    m = mask.astype(np.float64)
+    b = np.where(mask[..., None], bearings, 0.0)
+    count = m.sum(axis=1)
+    rate = np.full((n, 3), np.nan)
+    gain = np.full(n, np.inf)
+    valid = np.zeros(n, dtype=bool)
+    for p in (1, 2) if order == 2 else (1,):
+        use = count >= p + 1
+        if p == 1:
+            use &= count >= 2
+        else:
+            use &= count >= 3
+        if not use.any():
+            continue
+        powers = np.stack([tau_s**j for j in range(p + 1)], axis=1)  # (W, p+1)
+        normal = np.einsum("nw,wi,wj->nij", m[use], powers, powers)
+        rhs = np.einsum("nw,wi,nwc->nic", m[use], powers, b[use])
+        det_ok = np.abs(np.linalg.det(normal)) > 1e-30
+        safe = np.where(det_ok[:, None, None], normal, np.eye(p + 1))
+        inv = np.linalg.inv(safe)
+        coef = inv @ rhs  # (n_use, p+1, 3)
+        idx = np.flatnonzero(use)
+        rate[idx[det_ok]] = coef[det_ok, 1]
+        gain[idx[det_ok]] = np.sqrt(np.maximum(inv[det_ok, 1, 1], 0.0))
+        valid[idx[det_ok]] = True
+    return rate, gain, valid
+
+
+class OwlEngine:
+    """The OWL pipeline for one camera (see the module docstring).
+
+    Args:
+        camera: the camera model of the images.
+        options: engine settings.
+    """
+
+    def __init__(self, camera: CameraModel, options: EngineOptions | None = None) -> None:
+        if not isinstance(camera, CameraModel):
+            raise InvalidInputError(f"camera must be a CameraModel, got {type(camera).__name__}")
+        self.camera = camera
+        self.options = opts = options if options is not None else EngineOptions()
+        tracker_opts = opts.tracker
+        history = max(tracker_opts.history_len, opts.fit_frames)
+        self._tracker_options = TrackerOptions(
+            **{
+                **tracker_opts.__dict__,
+                "max_features": opts.max_features,
+                "history_len": history,
+            }
+        )
+        self._gyro = GyroBuffer(
+            camera_to_imu_rotation_xyzw=opts.camera_to_imu_rotation_xyzw,
+            imu_time_offset_ns=round(opts.imu_time_offset_s * 1e9),
+        )
+        self._r_ci = quat_xyzw_to_matrix(
+            np.asarray(opts.camera_to_imu_rotation_xyzw, dtype=np.float64)
+            / np.linalg.norm(opts.camera_to_imu_rotation_xyzw)
+        )
+        self._bias = hd.GyroBiasFilter(
+            camera_to_imu=self._r_ci,
+            initial_sigma=opts.bias_initial_sigma,
+            random_walk=opts.bias_random_walk,
+            initial_bias=opts.initial_bias_imu,
+        )
+        self._tracker = FeatureTracker(self._tracker_options)
+        self._rng = np.random.default_rng(opts.seed)
+        self._last_stamp: int | None = None
+        self._last_heading: FloatArray | None = None
+        self.frames = 0
+
+    # ------------------------------------------------------------------ inputs
+
+    @property
+    def gyro_bias(self) -> FloatArray:
+        """(3,) current gyro-bias estimate, IMU frame, rad/s."""
+        return np.asarray(self._bias.bias.copy(), dtype=np.float64)
+
+    @property
+    def gyro_bias_sigma(self) -> FloatArray:
+        """(3,) 1-sigma of the bias estimate per IMU axis, rad/s."""
+        return np.asarray(np.sqrt(np.diag(self._bias.cov)), dtype=np.float64)
+
+    @property
+    def gyro(self) -> GyroBuffer:
+        """The gyro buffer (read it; feed it through :meth:`add_gyro`)."""
+        return self._gyro
+
+    def add_gyro(self, samples: GyroSamples) -> int:
+        """Add gyro samples (IMU frame, IMU clock). Returns the number accepted.
+
+        Samples older than the newest held one by more than ``max_frame_gap_s`` (a time
+        jump backwards, e.g. a looping bag) clear the buffer first.
+        """
+        stamps = np.asarray(samples.stamp_ns)
+        span = self._gyro.camera_span_ns
+        if stamps.size and span is not None:
+            newest_imu = span[1] + self._gyro.imu_time_offset_ns
+            if int(stamps[0]) < newest_imu - round(self.options.max_frame_gap_s * 1e9):
+                self._gyro.reset()
+        return self._gyro.add(samples)
+
+    def covers(self, stamp_ns: int) -> bool:
+        """Whether the gyro covers the interval from the previous frame to ``stamp_ns``
+        (just ``stamp_ns`` for the first frame)."""
+        start = self._last_stamp if self._last_stamp is not None else int(stamp_ns)
+        return self._gyro.covers(min(start, int(stamp_ns)), int(stamp_ns))
+
+    def reset(self) -> None:
+        """Forget tracks, gyro samples, heading and the bias estimate."""
+        self._tracker.reset()
+        self._gyro.reset()
+        self._bias.reset()
+        self._last_stamp = None
+        self._last_heading = None
+        self._rng = np.random.default_rng(self.options.seed)
+
+    def _soft_reset(self) -> None:
+        """Forget tracks and heading (keeps gyro samples and the bias estimate)."""
+        self._tracker.reset()
+        self._last_stamp = None
+        self._last_heading = None
+
+    # ------------------------------------------------------------------ process
+
+    def process(self, frame: ImageFrame) -> FrameResult:
+        """Run the pipeline on one image (see the module docstring).
+
+        Args:
+            frame: the image (H, W) uint8 matching the camera size, integer-ns stamp.
+
+        Returns:
+            The frame's :class:`~owl_core.types.FrameResult`.
+
+        Raises:
+            InvalidInputError: wrong image shape or dtype.
+        """
+        t_start = time.perf_counter()
+        opts = self.options
+        img = np.asarray(frame.image)
+        if img.ndim != 2 or img.dtype != np.uint8:
+            raise InvalidInputError(
+                f"image must be a 2-D uint8 array, got shape {img.shape} dtype {img.dtype}"
+            )
+        if img.shape != (self.camera.height, self.camera.width):
+            raise InvalidInputError(
+                f"image shape {img.shape} does not match the camera "
+                f"({self.camera.height}, {self.camera.width})"
+            )
+        stamp = int(frame.stamp_ns)
+        reasons: list[str] = []
+        dropped: dict[str, int] = {}
+        timings: dict[str, float] = {}
+        if self._last_stamp is not None:
+            gap = stamp - self._last_stamp
+            if gap <= 0:
+                reasons.append(
+                    f"time went backwards ({stamp} ns after {self._last_stamp} ns): tracks reset"
+                )
+                self._soft_reset()
+            elif gap > opts.max_frame_gap_s * 1e9:
+                reasons.append(f"frame gap {gap * 1e-9:.3f} s > max_frame_gap_s: tracks reset")
+                self._soft_reset()
+
+        # ---------------------------------------------------------------- track
+        bias = self._bias.bias
+        prev = self._last_stamp
+        predict = None
+        if prev is not None and self._gyro.covers(prev, stamp):
+            rot = self._gyro.relative_rotation(prev, stamp, bias)
+            cam = self.camera
+
+            def predict(px: FloatArray) -> FloatArray:
+                return cam.bearing_to_pixel(cam.pixel_to_bearing(px) @ rot.T)
+
+        t0 = time.perf_counter()
+        tracks = self._tracker.track(img, stamp, predict)
+        timings["track"] = time.perf_counter() - t0
+        for key, value in getattr(tracks, "timings", {}).items():
+            timings[key] = float(value)
+        self._last_stamp = stamp
+        self.frames += 1
+        if tracks.lost_by_reason:
+            for key, value in tracks.lost_by_reason.items():
+                if value:
+                    dropped[f"lost_{key}"] = int(value)
+
+        def finish(heading: FloatArray | None = None, sigma: float = math.inf) -> FrameResult:
+            timings["total"] = time.perf_counter() - t_start
+            return _empty_result(stamp, heading, sigma, self._bias.bias, timings, reasons, dropped)
+
+        # ------------------------------------------------------------ integrate
+        t0 = time.perf_counter()
+        stamps = tracks.stamps_ns[: opts.fit_frames]
+        columns = np.flatnonzero(stamps >= 0)
+        columns = columns[columns < opts.fit_frames]
+        flags_all = np.uint8(0)
+        rotations = np.repeat(np.eye(3)[None], stamps.shape[0], axis=0)
+        usable_col = stamps >= 0
+        gyro_prior = opts.no_gyro_rotation_sigma**2 * np.eye(3)
+        have_gyro = len(self._gyro) > 0
+        with_gyro = True
+        for k in columns[1:]:
+            if self._gyro.covers(int(stamps[k]), stamp):
+                rotations[k] = self._gyro.relative_rotation(int(stamps[k]), stamp, bias)
+            else:
+                usable_col[k] = False
+        if columns.size > 1 and not usable_col[columns[1]]:
+            # not even the last interval is covered
+            if opts.require_gyro:
+                what = (
+                    "no gyro samples" if not have_gyro else "IMU does not cover the frame interval"
+                )
+                reasons.append(f"{what} (require_gyro): no points")
+                dropped["no_gyro"] = tracks.num_tracks
+                timings["integrate"] = time.perf_counter() - t0
+                return finish()
+            with_gyro = False
+            flags_all = np.uint8(PointFlag.NO_GYRO | (PointFlag.IMU_GAP if have_gyro else 0))
+            rotations[:] = np.eye(3)
+            usable_col = stamps >= 0
+            reasons.append(
+                "processed without gyro derotation: "
+                + ("IMU does not cover the interval" if have_gyro else "no gyro samples")
+            )
+        usable_col[opts.fit_frames :] = False
+
+        hist = tracks.history[:, : opts.fit_frames]
+        n_tracks = hist.shape[0]
+        w = hist.shape[1]
+        bearings_h = self.camera.pixel_to_bearing(hist.reshape(-1, 2)).reshape(n_tracks, w, 3)
+        bearings_h = np.einsum("kij,nkj->nki", rotations[:w], bearings_h)
+        mask = np.all(np.isfinite(bearings_h), axis=2) & usable_col[None, :w]
+        tau = np.where(stamps[:w] >= 0, (stamps[:w] - stamp) * 1e-9, 0.0)
+        enough = mask.sum(axis=1) >= opts.min_track_frames
+        enough &= mask[:, 0]
+        rate, gain, fit_ok = fit_tracks(bearings_h, tau, mask & enough[:, None], opts.fit_order)
+        ok = enough & fit_ok
+        young = int(np.count_nonzero(~enough))
+        if young:
+            dropped["young_track"] = young
+        if not ok.any():
+            reasons.append(
+                f"no track spans {opts.min_track_frames} frames yet (tracks: {n_tracks})"
+            )
+            timings["integrate"] = time.perf_counter() - t0
+            return finish()
+        idx = np.flatnonzero(ok)
+        e = bearings_h[idx, 0]
+        f = rate[idx]
+        f = f - np.einsum("ni,ni->n", f, e)[:, None] * e
+        bearing_sigma = opts.pixel_noise_px / max(self.camera.fx, self.camera.fy)
+        f_sigma = gain[idx] * bearing_sigma
+        pixels = tracks.pixels[idx]
+        ids = tracks.ids[idx]
+        timings["integrate"] = time.perf_counter() - t0
+
+        # -------------------------------------------------------------- heading
+        t0 = time.perf_counter()
+        window_s = float(-tau[columns[columns < w]].min()) if columns.size > 1 else 1.0
+        if with_gyro:
+            self._bias.predict(max(stamp - (prev or stamp), 0) * 1e-9)
+            prior = self._bias.cov_camera + np.eye(3) * opts.gyro_noise_density**2 / max(
+                window_s, 1e-3
+            )
+            if not opts.estimate_bias:
+                prior = prior * 1e-12
+        else:
+            prior = gyro_prior
+        est = hd.estimate_motion(
+            e,
+            f,
+            f_sigma,
+            prior,
+            options=opts.heading,
+            rng=self._rng,
+            initial_heading=self._last_heading,
+        )
+        if with_gyro and opts.estimate_bias:
+            self._bias.update(est.rotation_error, est.rotation_cov, prior, opts.bias_inflation)
+        timings["heading"] = time.perf_counter() - t0
+        if not est.translating or est.heading is None:
+            reasons.append(est.reason)
+            dropped["no_translation" if not est.translating else "no_heading"] = idx.size
+            self._last_heading = None
+            return finish()
+        heading = est.heading
+        self._last_heading = heading
+        # remove the leftover rotation found jointly with the heading
+        f = f + np.cross(est.rotation_error, e)
+
+        # -------------------------------------------------------------- looming
+        t0 = time.perf_counter()
+        omega = np.cross(f, e)
+        k = min(opts.neighbours, idx.size - 1)
+        local: motion.LocalFit | None = None
+        if k >= opts.min_neighbours:
+            tree = cKDTree(pixels)
+            dist, nb = tree.query(pixels, k=k + 1, distance_upper_bound=opts.neighbour_radius_px)
+            dist, nb = dist[:, 1:], nb[:, 1:]
+            nb_mask = np.isfinite(dist) & (nb < idx.size)
+            nb_safe = np.where(nb_mask, nb, 0)
+            noise = math.sqrt(2.0) * float(np.median(f_sigma))
+            local = motion.fit_local_looming(
+                e,
+                f,
+                e[nb_safe],
+                f[nb_safe],
+                nb_mask,
+                noise=noise,
+                min_neighbours=opts.min_neighbours,
+            )
+        res = np.nan_to_num(est.residuals, nan=0.0)
+        moving = np.abs(res) > opts.moving_sigma
+        route = motion.looming_from_heading(
+            e,
+            omega,
+            heading,
+            omega_sigma=f_sigma,
+            heading_sigma=est.heading_sigma_rad,
+            min_sin=opts.heading_min_sin,
+        )
+        if local is not None:
+            both = local.valid & route.valid
+            l_gap = np.abs(np.where(both, local.looming - route.looming, 0.0))
+            spread = np.sqrt(np.where(both, local.variance + route.variance, 1.0))
+            moving |= both & (l_gap > opts.moving_sigma * spread)
+        route = motion.HeadingRoute(
+            np.where(moving, np.nan, route.looming),
+            np.where(moving, np.inf, route.variance),
+            route.valid & ~moving,
+        )
+        fused = motion.fuse_looming(local, route, idx.size, max_disagreement=opts.moving_sigma)
+        quantities = motion.owl_quantities(e, fused.looming, omega, min_tor=opts.min_tor)
+        q_local = (
+            np.where(local.valid, local.quality, 1.0) if local is not None else np.ones(idx.size)
+        )
+        quality = q_local / (1.0 + (res / opts.moving_sigma) ** 2)
+        flags = fused.flags | flags_all
+        flags = flags | np.where(moving, np.uint8(PointFlag.MOVING), np.uint8(0))
+        flags = flags | np.where(
+            quality < opts.min_quality, np.uint8(PointFlag.LOW_QUALITY), np.uint8(0)
+        )
+        keep = fused.valid & quantities.valid
+        no_l = int(np.count_nonzero(~fused.valid))
+        if no_l:
+            dropped["no_looming"] = no_l
+        no_tor = int(np.count_nonzero(fused.valid & ~quantities.valid))
+        if no_tor:
+            dropped["no_translation_signal"] = no_tor
+        timings["looming"] = time.perf_counter() - t0
+        if not keep.any():
+            reasons.append("no feature has a looming estimate (too few neighbours, at the FOE)")
+        elif no_l:
+            reasons.append(f"{no_l} features without L (too few neighbours or at the FOE)")
+        timings["total"] = time.perf_counter() - t_start
+        return FrameResult(
+            stamp_ns=stamp,
+            pixels=pixels[keep],
+            bearings=e[keep],
+            looming=fused.looming[keep],
+            omega=omega[keep],
+            rot=quantities.rot[keep],
+            range_over_speed=quantities.range_over_speed[keep],
+            points=quantities.points[keep],
+            quality=quality[keep],
+            ids=ids[keep].astype(np.uint32),
+            flags=flags[keep].astype(np.uint8),
+            heading=heading.copy(),
+            heading_sigma_rad=float(est.heading_sigma_rad),
+            gyro_bias=self._bias.bias.copy(),
+            timings=timings,
+            reasons=tuple(reasons),
+            dropped=dropped,
+        )
