@@ -33,6 +33,7 @@ from typing import Any, TextIO
 
 from bags.errors import BagError
 from bags.io import BagWriter
+from bags.replay import split_ros_args
 from msg_adapters.errors import AdapterError
 from msg_adapters.msgtypes import header_first, message_class
 from msg_adapters.stamps import NS_PER_S
@@ -204,18 +205,18 @@ class Recorder:
                 continue  # only subscribers so far: the publisher's QoS is unknown
             msgtype = types[0]
             if len(types) > 1:
-                self._say(f"topic {topic} has several types {types}; recording {msgtype}")
+                self.say(f"topic {topic} has several types {types}; recording {msgtype}")
             try:
                 cls = message_class(msgtype)
             except AdapterError as err:
-                self._say(f"not recording {topic}: {err}")
+                self.say(f"not recording {topic}: {err}")
                 self.subscriptions[topic] = None
                 continue
             qos, kind = subscription_qos(infos, self.opts.qos_depth)
             try:
                 self.writer.add_topic(topic, msgtype, qos=kind)
             except BagError as err:
-                self._say(f"not recording {topic}: {err}")
+                self.say(f"not recording {topic}: {err}")
                 self.subscriptions[topic] = None
                 continue
             use_header = self.opts.stamp == "header" and header_first(cls)
@@ -227,14 +228,14 @@ class Recorder:
                 qos,
                 raw=True,
             )
-            self._say(f"recording {topic} ({msgtype}, {kind})")
+            self.say(f"recording {topic} ({msgtype}, {kind})")
 
     def report_missing(self) -> None:
         """Say once which topics still have no publisher."""
         missing = [t for t in self.opts.topics if t not in self.subscriptions]
         if missing and not self.reported_missing:
             self.reported_missing = True
-            self._say(
+            self.say(
                 f"no publisher yet on {', '.join(missing)} after "
                 f"{self.opts.discovery_timeout_s:g} s; still waiting"
             )
@@ -249,7 +250,8 @@ class Recorder:
         self.counts[topic] += 1
         self.total += 1
 
-    def _say(self, text: str) -> None:
+    def say(self, text: str) -> None:
+        """One status line on the stream (unless quiet)."""
         if not self.opts.quiet:
             self.stream.write(f"[{PROG}] {text}\n")
             self.stream.flush()
@@ -282,6 +284,7 @@ def record(
             executor.add_node(node)
             recorder = Recorder(opts, writer, node, stream)
             start = time.monotonic()
+            recorder.say(f"recording to {opts.out}: {', '.join(opts.topics)}")
             next_discovery = start
             last_progress = start
             while not stop.requested:
@@ -302,6 +305,7 @@ def record(
                     stream.flush()
             if not opts.quiet and stream.isatty():
                 stream.write("\n")
+            _drain(executor, recorder)
             # leave the with block normally: BagWriter.close() finishes the MCAP and metadata
             for sub in recorder.subscriptions.values():
                 if sub is not None:
@@ -315,14 +319,21 @@ def record(
             signal.signal(sig, handler)
 
 
+def _drain(executor: Any, recorder: Recorder, limit_s: float = 2.0) -> None:
+    """Write what DDS already delivered (acknowledged to the publisher, not yet taken)."""
+    deadline = time.monotonic() + limit_s
+    while time.monotonic() < deadline:
+        before = recorder.total
+        executor.spin_once(timeout_sec=0.1)
+        if recorder.total == before:
+            return
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point (owl_record = bags.record:main)."""
-    from rclpy.utilities import remove_ros_args
-
-    args = list(sys.argv[1:] if argv is None else argv)
-    ros_args = args[args.index("--ros-args") :] if "--ros-args" in args else []
+    own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
     try:
-        opts = parse_options(remove_ros_args(args=[PROG, *args])[1:])
+        opts = parse_options(own)
     except RecordError as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2

@@ -203,7 +203,8 @@ class _Stop:
 
 
 class _Progress:
-    """One self-overwriting status line on a terminal, a line every 10 s otherwise."""
+    """One self-overwriting status line on a terminal; otherwise a line every 10 s and at
+    the end of each loop."""
 
     def __init__(self, stream: TextIO, quiet: bool, total_msgs: int, span_s: float) -> None:
         self.stream = stream
@@ -353,13 +354,14 @@ def replay(opts: ReplayOptions, ros_args: Sequence[str] = (), stream: TextIO = s
                     progress.update((raw.log_time_ns - start_ns) / 1e9, sent, loop)
                 if not opts.loop or total == 0:
                     break
+                progress.update((end_ns - start_ns) / 1e9, sent, loop, force=True)
                 loop += 1
             progress.update((end_ns - start_ns) / 1e9, sent, loop, force=True)
             progress.finish()
             # Reliable delivery of the last messages: wait for every matched subscriber to
             # acknowledge before the publishers are destroyed (best effort ones ack at once).
             if not stop.requested:
-                for pub in publishers.values():
+                for pub in [*publishers.values(), *([clock_pub] if clock_pub else [])]:
                     pub.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT_S))
         finally:
             if node is not None:
@@ -378,14 +380,32 @@ def _sleep_until(deadline: float, stop: _Stop) -> None:
         time.sleep(min(left, 0.05))
 
 
+def split_ros_args(args: Sequence[str]) -> tuple[list[str], list[str]]:
+    """(own arguments, ROS arguments): every ``--ros-args ... [--]`` block goes to ROS.
+
+    Unlike rclpy's remove_ros_args this leaves ``FROM:=TO`` outside ``--ros-args`` alone
+    (rcl would take it for a deprecated remap rule), so ``--remap FROM:=TO`` is ours.
+    """
+    own: list[str] = []
+    ros: list[str] = []
+    in_ros = False
+    for arg in args:
+        if arg == "--ros-args":
+            in_ros = True
+            ros.append(arg)
+        elif in_ros and arg == "--":
+            in_ros = False
+            ros.append(arg)
+        else:
+            (ros if in_ros else own).append(arg)
+    return own, ros
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point (owl_replay = bags.replay:main)."""
-    from rclpy.utilities import remove_ros_args
-
-    args = list(sys.argv[1:] if argv is None else argv)
-    ros_args = args[args.index("--ros-args") :] if "--ros-args" in args else []
+    own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
     try:
-        opts = parse_options(remove_ros_args(args=[PROG, *args])[1:])
+        opts = parse_options(own)
     except ReplayError as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
