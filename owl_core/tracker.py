@@ -1,0 +1,441 @@
+"""Feature tracker: grid-bucketed corners, pyramidal Lucas-Kanade, persistent ids.
+
+Every frame the tracker
+
+1. tracks the live features from the previous image into the new one with
+   pyramidal Lucas-Kanade (``cv2.calcOpticalFlowPyrLK``), starting from the
+   positions given by the optional ``predict`` callable (e.g. the gyro-predicted
+   rotation; fast rotations are then tracked even beyond the pyramid's reach);
+2. tracks the results back into the previous image and drops features whose
+   round trip misses the start by more than ``fb_threshold_px``
+   (forward-backward check), whose window differs from the previous one by more
+   than ``max_patch_error`` grey levels on average (occlusion, changed content:
+   a wrong match can pass the round trip), that LK reports as failed, or that
+   leave the image;
+3. detects new corners (``cv2.goodFeaturesToTrack``, Shi-Tomasi) away from the
+   surviving features (``min_distance_px``) whenever fewer than
+   ``redetect_below * max_features`` remain, spread over a ``grid_cols x
+   grid_rows`` grid so each cell gets about its share.
+
+Bookkeeping (ids, ages, the history of the last ``history_len`` positions) is
+vectorised numpy; there is no Python loop over features.
+
+Pixel coordinates follow OpenCV: ``(u, v)``, centre of the top-left pixel at 0.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TypeVar
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from owl_core.errors import InvalidInputError, TimeError
+
+FloatArray = npt.NDArray[np.float64]
+Predictor = Callable[[FloatArray], npt.ArrayLike]
+
+__all__ = ["LOST_REASONS", "FeatureTracker", "TrackerOptions", "Tracks"]
+
+#: Keys of :attr:`Tracks.lost_by_reason`.
+LOST_REASONS = ("lk_failed", "fb_check", "patch_error", "left_image", "reset")
+
+
+@dataclass(frozen=True)
+class TrackerOptions:
+    """Tracker settings (all sizes in pixels of the input image).
+
+    Attributes:
+        max_features: number of features the tracker keeps alive (> 0).
+        grid_cols: detection grid columns; each cell gets about
+            ``max_features / (grid_cols * grid_rows)`` features.
+        grid_rows: detection grid rows.
+        min_distance_px: minimum distance between a new corner and any other
+            feature, pixels.
+        quality_level: Shi-Tomasi threshold relative to the strongest corner of
+            the image, in (0, 1).
+        block_size: Shi-Tomasi structure-tensor window, pixels (odd, >= 3).
+        border_px: features closer than this to the image border are not
+            detected and are dropped when they get there, pixels.
+        lk_window_px: Lucas-Kanade window side, pixels (odd, >= 5).
+        lk_levels: pyramid levels above the full image (0 = no pyramid). The
+            reach without a prediction is about ``lk_window_px / 2 * 2**lk_levels``.
+        lk_max_iterations: LK iterations per level.
+        lk_epsilon_px: LK stops when an update is smaller than this, pixels.
+        lk_min_eigenvalue: LK rejects points whose normalised minimum eigenvalue
+            of the gradient matrix is below this (flat texture).
+        fb_threshold_px: maximum forward-backward round-trip error, pixels.
+        max_patch_error: maximum mean absolute grey-level difference between the
+            LK windows in the two images (uint8 grey levels, 0..255).
+        redetect_below: detect new corners when fewer than
+            ``redetect_below * max_features`` features survive, in (0, 1].
+        history_len: number of positions kept per track (current one included, >= 2).
+    """
+
+    max_features: int = 1000
+    grid_cols: int = 8
+    grid_rows: int = 6
+    min_distance_px: float = 8.0
+    quality_level: float = 0.01
+    block_size: int = 5
+    border_px: float = 8.0
+    lk_window_px: int = 15
+    lk_levels: int = 3
+    lk_max_iterations: int = 30
+    lk_epsilon_px: float = 0.01
+    lk_min_eigenvalue: float = 1e-4
+    fb_threshold_px: float = 0.5
+    max_patch_error: float = 20.0
+    redetect_below: float = 0.95
+    history_len: int = 8
+
+    def __post_init__(self) -> None:
+        ints = {
+            "max_features": (self.max_features, 1),
+            "grid_cols": (self.grid_cols, 1),
+            "grid_rows": (self.grid_rows, 1),
+            "block_size": (self.block_size, 3),
+            "lk_window_px": (self.lk_window_px, 5),
+            "lk_levels": (self.lk_levels, 0),
+            "lk_max_iterations": (self.lk_max_iterations, 1),
+            "history_len": (self.history_len, 2),
+        }
+        for name, (value, low) in ints.items():
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise InvalidInputError(
+                    f"TrackerOptions.{name} must be an int >= {low}, got {value!r}"
+                )
+        for name in ("block_size", "lk_window_px"):
+            if getattr(self, name) % 2 == 0:
+                raise InvalidInputError(
+                    f"TrackerOptions.{name} must be odd, got {getattr(self, name)}"
+                )
+        floats: dict[str, tuple[float, float, float, bool]] = {
+            "min_distance_px": (self.min_distance_px, 0.0, math.inf, True),
+            "quality_level": (self.quality_level, 0.0, 1.0, False),
+            "border_px": (self.border_px, 0.0, math.inf, True),
+            "lk_epsilon_px": (self.lk_epsilon_px, 0.0, math.inf, False),
+            "lk_min_eigenvalue": (self.lk_min_eigenvalue, 0.0, math.inf, True),
+            "fb_threshold_px": (self.fb_threshold_px, 0.0, math.inf, False),
+            "max_patch_error": (self.max_patch_error, 0.0, 255.0, False),
+            "redetect_below": (self.redetect_below, 0.0, 1.0, False),
+        }
+        for name, (fvalue, lo, hi, lo_ok) in floats.items():
+            ok = (
+                isinstance(fvalue, int | float)
+                and math.isfinite(fvalue)
+                and (fvalue >= lo if lo_ok else fvalue > lo)
+                and fvalue <= hi
+            )
+            if not ok:
+                bound = "[" if lo_ok else "("
+                raise InvalidInputError(
+                    f"TrackerOptions.{name} must be in {bound}{lo}, {hi}], got {fvalue!r}"
+                )
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """The live features after one frame. N = number of tracks, H = history_len.
+
+    Arrays are read-only snapshots.
+
+    Attributes:
+        ids: (N,) uint32 persistent track ids (unique, increasing with creation).
+        pixels: (N, 2) float64 current positions (u, v), pixels.
+        ages: (N,) int32 frames each feature has been tracked (0 = detected in
+            this frame); ``history[i, :ages[i] + 1]`` is valid (up to H).
+        history: (N, H, 2) float64 past positions, ``[:, 0]`` = current,
+            ``[:, k]`` = k frames ago; NaN where the track did not exist.
+        stamps_ns: (H,) int64 stamps of those frames, nanoseconds (-1 if none).
+        num_detected: features newly detected in this frame.
+        num_lost: features lost in this frame.
+        lost_ids: (num_lost,) uint32 ids of the features lost in this frame.
+        lost_by_reason: counts of lost features per reason (``LOST_REASONS``):
+            LK failure, forward-backward check, patch difference, leaving the
+            image, reset (image size change).
+    """
+
+    ids: npt.NDArray[np.uint32]
+    pixels: FloatArray
+    ages: npt.NDArray[np.int32]
+    history: FloatArray
+    stamps_ns: npt.NDArray[np.int64]
+    num_detected: int = 0
+    num_lost: int = 0
+    lost_ids: npt.NDArray[np.uint32] = field(default_factory=lambda: np.zeros(0, dtype=np.uint32))
+    lost_by_reason: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def num_tracks(self) -> int:
+        """N, the number of live tracks."""
+        return int(self.ids.shape[0])
+
+    @property
+    def stamp_ns(self) -> int:
+        """Stamp of the current frame, nanoseconds."""
+        return int(self.stamps_ns[0])
+
+
+class FeatureTracker:
+    """Tracks corners through a sequence of grey images (see module doc).
+
+    Args:
+        options: tracker settings.
+    """
+
+    def __init__(self, options: TrackerOptions | None = None) -> None:
+        self.options = options if options is not None else TrackerOptions()
+        self._next_id = 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget all tracks and the previous image; ids keep increasing."""
+        h = self.options.history_len
+        self._prev: npt.NDArray[np.uint8] | None = None
+        self._shape: tuple[int, int] | None = None
+        self._ids = np.zeros(0, dtype=np.uint32)
+        self._ages = np.zeros(0, dtype=np.int32)
+        self._history = np.zeros((0, h, 2), dtype=np.float64)
+        self._stamps = np.full(h, -1, dtype=np.int64)
+
+    @property
+    def num_tracks(self) -> int:
+        """Number of live tracks."""
+        return int(self._ids.shape[0])
+
+    def track(
+        self, image: npt.ArrayLike, stamp_ns: int, predict: Predictor | None = None
+    ) -> Tracks:
+        """Track the live features into ``image`` and replenish them.
+
+        Args:
+            image: (H, W) uint8 grey image.
+            stamp_ns: its stamp, nanoseconds; must increase from frame to frame.
+            predict: optional map from previous-frame pixels (M, 2) float64 to
+                predicted current pixels (M, 2) (LK starts there). Non-finite
+                predictions fall back to the previous position.
+
+        Returns:
+            The live tracks after this frame.
+
+        Raises:
+            InvalidInputError: not a 2-D uint8 image, or a malformed prediction.
+            TimeError: ``stamp_ns`` not after the previous frame's stamp.
+        """
+        img = np.asarray(image)
+        if img.ndim != 2 or img.dtype != np.uint8:
+            raise InvalidInputError(
+                f"image must be a 2-D uint8 array, got shape {img.shape} dtype {img.dtype}"
+            )
+        img = np.ascontiguousarray(img)
+        stamp = int(stamp_ns)
+        lost_by_reason = dict.fromkeys(LOST_REASONS, 0)
+        lost_ids = np.zeros(0, dtype=np.uint32)
+        if self._prev is not None and stamp <= int(self._stamps[0]):
+            raise TimeError(
+                f"image stamp {stamp} ns is not after the previous one {int(self._stamps[0])} ns"
+            )
+        if self._shape is not None and img.shape != self._shape:
+            lost_ids = self._ids.copy()
+            lost_by_reason["reset"] = lost_ids.shape[0]
+            self.reset()
+
+        # Shift the history by one frame; column 0 is filled below.
+        self._stamps = np.concatenate([[stamp], self._stamps[:-1]])
+        self._history = np.concatenate(
+            [np.full((self._history.shape[0], 1, 2), np.nan), self._history[:, :-1]], axis=1
+        )
+        if self._prev is not None and self._ids.shape[0] > 0:
+            prev = self._history[:, 1]
+            new_pos, reason = self._flow(self._prev, img, prev, predict)
+            keep = reason == 0
+            for code, name in enumerate(LOST_REASONS[:4], start=1):
+                lost_by_reason[name] = int(np.count_nonzero(reason == code))
+            lost_ids = np.concatenate([lost_ids, self._ids[~keep]])
+            self._history[:, 0] = new_pos
+            self._history = self._history[keep]
+            self._ids = self._ids[keep]
+            self._ages = self._ages[keep] + 1
+
+        num_detected = 0
+        opts = self.options
+        if self._ids.shape[0] < opts.redetect_below * opts.max_features:
+            corners = self._detect(img, self._history[:, 0])
+            num_detected = corners.shape[0]
+            new_hist = np.full((num_detected, opts.history_len, 2), np.nan)
+            new_hist[:, 0] = corners
+            self._history = np.concatenate([self._history, new_hist])
+            new_ids = (self._next_id + np.arange(num_detected)).astype(np.uint32)
+            self._next_id += num_detected
+            self._ids = np.concatenate([self._ids, new_ids])
+            self._ages = np.concatenate([self._ages, np.zeros(num_detected, dtype=np.int32)])
+
+        self._prev = img
+        self._shape = (int(img.shape[0]), int(img.shape[1]))
+        return self._snapshot(num_detected, lost_ids, lost_by_reason)
+
+    # ---------------------------------------------------------------- helpers
+
+    def _snapshot(
+        self, num_detected: int, lost_ids: npt.NDArray[np.uint32], lost_by_reason: dict[str, int]
+    ) -> Tracks:
+        return Tracks(
+            ids=_frozen(self._ids),
+            pixels=_frozen(self._history[:, 0]),
+            ages=_frozen(self._ages),
+            history=_frozen(self._history),
+            stamps_ns=_frozen(self._stamps),
+            num_detected=num_detected,
+            num_lost=int(lost_ids.shape[0]),
+            lost_ids=_frozen(lost_ids.astype(np.uint32)),
+            lost_by_reason=lost_by_reason,
+        )
+
+    def _flow(
+        self,
+        prev_img: npt.NDArray[np.uint8],
+        cur_img: npt.NDArray[np.uint8],
+        prev: FloatArray,
+        predict: Predictor | None,
+    ) -> tuple[FloatArray, npt.NDArray[np.int8]]:
+        """Forward LK from ``prev`` (M, 2), backward check; new positions and a
+        reason code per point (0 = kept, else 1 + index into LOST_REASONS)."""
+        opts = self.options
+        m = prev.shape[0]
+        init = prev.copy()
+        if predict is not None:
+            guess = np.asarray(predict(prev.copy()), dtype=np.float64)
+            if guess.shape != (m, 2):
+                raise InvalidInputError(
+                    f"predict must return shape ({m}, 2) for ({m}, 2) input, got {guess.shape}"
+                )
+            ok = np.all(np.isfinite(guess), axis=1)
+            init[ok] = guess[ok]
+        p0 = prev.astype(np.float32).reshape(-1, 1, 2)
+        criteria = (
+            cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
+            opts.lk_max_iterations,
+            opts.lk_epsilon_px,
+        )
+        win = (opts.lk_window_px, opts.lk_window_px)
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        p1, st1, err = (
+            np.asarray(a)
+            for a in cv2.calcOpticalFlowPyrLK(
+                prev_img,
+                cur_img,
+                p0,
+                init.astype(np.float32).reshape(-1, 1, 2),
+                winSize=win,
+                maxLevel=opts.lk_levels,
+                criteria=criteria,
+                flags=flags,
+                minEigThreshold=opts.lk_min_eigenvalue,
+            )
+        )
+        back, st2, _ = (
+            np.asarray(a)
+            for a in cv2.calcOpticalFlowPyrLK(
+                cur_img,
+                prev_img,
+                p1,
+                p0.copy(),
+                winSize=win,
+                maxLevel=opts.lk_levels,
+                criteria=criteria,
+                flags=flags,
+                minEigThreshold=opts.lk_min_eigenvalue,
+            )
+        )
+        new_pos = p1.reshape(-1, 2).astype(np.float64)
+        fb = np.linalg.norm(back.reshape(-1, 2).astype(np.float64) - prev, axis=1)
+        height, width = cur_img.shape
+        b = opts.border_px
+        inside = (
+            (new_pos[:, 0] >= b - 0.5)
+            & (new_pos[:, 0] <= width - 0.5 - b)
+            & (new_pos[:, 1] >= b - 0.5)
+            & (new_pos[:, 1] <= height - 0.5 - b)
+        )
+        lk_ok = (st1.reshape(-1) == 1) & np.all(np.isfinite(new_pos), axis=1)
+        reason = np.zeros(m, dtype=np.int8)
+        reason[~inside] = 4
+        reason[~(err.reshape(-1) <= opts.max_patch_error)] = 3
+        reason[~((st2.reshape(-1) == 1) & (fb <= opts.fb_threshold_px))] = 2
+        reason[~lk_ok] = 1
+        return new_pos, reason
+
+    def _detect(self, img: npt.NDArray[np.uint8], existing: FloatArray) -> FloatArray:
+        """New corners (K, 2), grid-balanced, away from ``existing`` (M, 2) features."""
+        opts = self.options
+        needed = opts.max_features - existing.shape[0]
+        if needed <= 0:
+            return np.zeros((0, 2))
+        height, width = img.shape
+        mask = np.zeros((height, width), dtype=np.uint8)
+        b = math.ceil(opts.border_px)
+        if 2 * b >= height or 2 * b >= width:
+            return np.zeros((0, 2))
+        mask[b : height - b, b : width - b] = 255
+        if existing.shape[0] > 0 and opts.min_distance_px > 0:
+            # Forbid disks of radius min_distance around the live features:
+            # mark their pixels, dilate with a disk, clear those pixels.
+            occupied = np.zeros((height, width), dtype=np.uint8)
+            ij = np.rint(existing).astype(np.int64)
+            ij[:, 0] = np.clip(ij[:, 0], 0, width - 1)
+            ij[:, 1] = np.clip(ij[:, 1], 0, height - 1)
+            occupied[ij[:, 1], ij[:, 0]] = 255
+            r = math.ceil(opts.min_distance_px)
+            disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+            mask[cv2.dilate(occupied, disk) > 0] = 0
+        corners = cv2.goodFeaturesToTrack(
+            img,
+            maxCorners=3 * needed + 10 * opts.grid_cols * opts.grid_rows,
+            qualityLevel=opts.quality_level,
+            minDistance=opts.min_distance_px,
+            mask=mask,
+            blockSize=opts.block_size,
+        )
+        if corners is None:
+            return np.zeros((0, 2))
+        pts = corners.reshape(-1, 2).astype(np.float64)  # strongest first
+        # Grid bucketing: each cell may add up to its share minus what it holds.
+        ncells = opts.grid_cols * opts.grid_rows
+        share = math.ceil(opts.max_features / ncells)
+        cell_new = self._cells(pts, width, height)
+        cell_old = self._cells(existing, width, height)
+        room = share - np.bincount(cell_old, minlength=ncells)
+        order = np.argsort(cell_new, kind="stable")  # by cell, strongest first within
+        counts = np.bincount(cell_new, minlength=ncells)
+        starts = np.cumsum(counts) - counts
+        rank = np.empty(pts.shape[0], dtype=np.int64)
+        rank[order] = np.arange(pts.shape[0]) - np.repeat(starts, counts)
+        first = rank < room[cell_new]
+        chosen = np.flatnonzero(first)[:needed]
+        if chosen.shape[0] < needed:  # cells without texture: fill with the strongest rest
+            rest = np.flatnonzero(~first)[: needed - chosen.shape[0]]
+            chosen = np.sort(np.concatenate([chosen, rest]))
+        result: FloatArray = pts[chosen]
+        return result
+
+    def _cells(self, pts: FloatArray, width: int, height: int) -> npt.NDArray[np.int64]:
+        opts = self.options
+        col = np.clip((pts[:, 0] + 0.5) * opts.grid_cols // width, 0, opts.grid_cols - 1)
+        row = np.clip((pts[:, 1] + 0.5) * opts.grid_rows // height, 0, opts.grid_rows - 1)
+        result: npt.NDArray[np.int64] = (row * opts.grid_cols + col).astype(np.int64)
+        return result
+
+
+_T = TypeVar("_T", bound=np.ndarray)
+
+
+def _frozen(a: _T) -> _T:
+    """A read-only copy."""
+    out = a.copy()
+    out.setflags(write=False)
+    return out

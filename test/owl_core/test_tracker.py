@@ -1,0 +1,280 @@
+"""FeatureTracker on synthetic images whose true motion is known exactly.
+
+The texture is an analytic sum of random sinusoids, so a translated or
+homography-warped image is rendered exactly (no interpolation error): only
+8-bit quantisation separates the images from the ideal.
+"""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from owl_core.errors import InvalidInputError, TimeError
+from owl_core.geometry import so3_exp
+from owl_core.tracker import LOST_REASONS, FeatureTracker, TrackerOptions, Tracks
+
+W, H = 320, 240
+F = 300.0
+K = np.array([[F, 0.0, (W - 1) / 2], [0.0, F, (H - 1) / 2], [0.0, 0.0, 1.0]])
+OPTS = TrackerOptions(max_features=300, grid_cols=8, grid_rows=6)
+
+_RNG = np.random.default_rng(7)
+_NC = 60
+_DIR = _RNG.uniform(0.0, 2.0 * np.pi, _NC)
+_LAM = np.exp(_RNG.uniform(np.log(4.0), np.log(40.0), _NC))  # wavelengths, px
+_KX = 2.0 * np.pi / _LAM * np.cos(_DIR)
+_KY = 2.0 * np.pi / _LAM * np.sin(_DIR)
+_PH = _RNG.uniform(0.0, 2.0 * np.pi, _NC)
+_AMP = np.sqrt(_LAM / 40.0)
+_GAIN = 44.0 / np.sqrt(np.sum(_AMP**2) / 2.0)
+
+
+def _texture(x: np.ndarray, y: np.ndarray, seed_shift: float = 0.0) -> np.ndarray:
+    """Analytic texture at (x, y), uint8; seed_shift gives a different pattern."""
+    phase = _KX[:, None] * x.ravel()[None] + _KY[:, None] * y.ravel()[None] + _PH[:, None]
+    v = np.sum(_AMP[:, None] * np.sin(phase + seed_shift * np.arange(_NC)[:, None]), axis=0)
+    return np.clip(np.rint(128.0 + _GAIN * v), 0, 255).astype(np.uint8).reshape(x.shape)
+
+
+def _grid() -> tuple[np.ndarray, np.ndarray]:
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    return u, v
+
+
+def _shifted(d: np.ndarray) -> np.ndarray:
+    """Image content moved by d pixels: I1(p) = I0(p - d)."""
+    u, v = _grid()
+    return _texture(u - d[0], v - d[1])
+
+
+def _rotation_homography(rotvec: np.ndarray) -> np.ndarray:
+    """Pixel homography p1 ~ K R K^-1 p0 for a pure camera rotation (R = R_{1<-0})."""
+    return K @ so3_exp(rotvec) @ np.linalg.inv(K)
+
+
+def _apply(hom: np.ndarray, p: np.ndarray) -> np.ndarray:
+    q = np.c_[p, np.ones(len(p))] @ hom.T
+    return q[:, :2] / q[:, 2:]
+
+
+def _warped(hom: np.ndarray) -> np.ndarray:
+    """Image of the texture seen after the homography: I1(p) = I0(H^-1 p)."""
+    u, v = _grid()
+    src = _apply(np.linalg.inv(hom), np.c_[u.ravel(), v.ravel()])
+    return _texture(src[:, 0].reshape(H, W), src[:, 1].reshape(H, W))
+
+
+IMAGE0 = _shifted(np.zeros(2))
+
+
+def _tracked(tracks: Tracks) -> np.ndarray:
+    """Mask of tracks that existed in the previous frame."""
+    return tracks.ages >= 1
+
+
+@pytest.mark.parametrize("shift", [(0.37, -0.61), (2.5, 1.25), (-7.8, 4.1)])
+def test_subpixel_translation(shift: tuple[float, float]) -> None:
+    d = np.array(shift)
+    tracker = FeatureTracker(OPTS)
+    first = tracker.track(IMAGE0, 1000)
+    assert first.num_tracks == OPTS.max_features and first.num_detected == first.num_tracks
+    second = tracker.track(_shifted(d), 2000)
+    old = _tracked(second)
+    assert np.count_nonzero(old) > 0.9 * first.num_tracks
+    err = np.linalg.norm(second.pixels[old] - second.history[old, 1] - d, axis=1)
+    assert np.max(err) < 0.1
+
+
+@pytest.mark.parametrize(
+    ("rotvec", "max_px", "p95_px"),
+    [
+        # 0.6 deg per axis between frames (~35 deg/s at 30 Hz): ~6 px of motion.
+        ((0.01, -0.02, 0.01), 0.1, 0.1),
+        # A fast roll (0.03 rad, ~1 rad/s at 30 Hz) turns the 15 px window by
+        # 0.03 * 7 px = 0.2 px at its edge; LK's translation model then biases a
+        # few features by up to about half of that.
+        ((0.01, -0.02, 0.03), 0.2, 0.1),
+    ],
+)
+def test_rotation_homography(rotvec: tuple[float, ...], max_px: float, p95_px: float) -> None:
+    hom = _rotation_homography(np.array(rotvec))
+    tracker = FeatureTracker(OPTS)
+    first = tracker.track(IMAGE0, 0)
+    second = tracker.track(_warped(hom), 33_000_000)
+    old = _tracked(second)
+    assert np.count_nonzero(old) > 0.9 * first.num_tracks
+    err = np.linalg.norm(second.pixels[old] - _apply(hom, second.history[old, 1]), axis=1)
+    assert np.max(err) < max_px
+    assert np.percentile(err, 95) < p95_px
+
+
+def test_fast_rotation_needs_prediction() -> None:
+    # Yaw of ~7.6 deg: about 40 px of motion, beyond the reach of a 2-level pyramid
+    # with a 15 px window (~7 * 4 = 28 px), so only the prediction can track it.
+    # The turn also scales the image by up to ~10% near the edges (perspective),
+    # which biases LK's translation model by up to a few tenths of a pixel.
+    opts = TrackerOptions(max_features=300, lk_levels=2, lk_window_px=15)
+    hom = _rotation_homography(np.array([0.0, np.arctan(40.0 / F), 0.0]))
+    image1 = _warped(hom)
+    results = {}
+    for use_prediction in (True, False):
+        tracker = FeatureTracker(opts)
+        first = tracker.track(IMAGE0, 0)
+        predict = (lambda p: _apply(hom, p)) if use_prediction else None
+        second = tracker.track(image1, 1, predict=predict)
+        old = _tracked(second)
+        err = np.linalg.norm(second.pixels[old] - _apply(hom, second.history[old, 1]), axis=1)
+        results[use_prediction] = np.count_nonzero(err < 0.5)
+        # features still visible after the turn
+        visible = np.all(
+            (_apply(hom, first.pixels) > 10) & (_apply(hom, first.pixels) < [W - 10, H - 10]),
+            axis=1,
+        )
+        if use_prediction:
+            assert np.max(err) < 0.5
+            assert np.median(err) < 0.1
+            assert results[True] > 0.8 * np.count_nonzero(visible)
+    assert results[False] < 0.2 * results[True]
+
+
+def test_forward_backward_rejects_changed_region() -> None:
+    d = np.array([1.3, 0.4])
+    u, v = _grid()
+    image1 = _shifted(d)
+    box = (u >= 100) & (u < 200) & (v >= 60) & (v < 160)
+    image1[box] = _texture(u[box], v[box], seed_shift=1.0)  # unrelated content
+    tracker = FeatureTracker(OPTS)
+    first = tracker.track(IMAGE0, 0)
+    second = tracker.track(image1, 1)
+    p0 = first.pixels
+    inside = (
+        (p0[:, 0] >= 100 + 10)
+        & (p0[:, 0] < 200 - 10)
+        & (p0[:, 1] >= 60 + 10)
+        & (p0[:, 1] < 160 - 10)
+    )
+    outside = (
+        (p0[:, 0] < 100 - 20)
+        | (p0[:, 0] >= 200 + 20)
+        | (p0[:, 1] < 60 - 20)
+        | (p0[:, 1] >= 160 + 20)
+    )
+    assert np.count_nonzero(inside) > 20
+    survived = np.isin(first.ids, second.ids[_tracked(second)])
+    assert np.count_nonzero(survived & inside) <= 0.1 * np.count_nonzero(inside)
+    assert np.count_nonzero(survived & outside) >= 0.95 * np.count_nonzero(outside)
+    rejected = sum(second.lost_by_reason[k] for k in ("fb_check", "lk_failed", "patch_error"))
+    assert rejected >= 0.9 * np.count_nonzero(inside)
+    assert second.num_lost == sum(second.lost_by_reason.values())
+    np.testing.assert_array_equal(np.sort(second.lost_ids), np.sort(first.ids[~survived]))
+    # Features whose window lies wholly outside the box are tracked precisely
+    # (a window straddling the box edge is biased, or rejected).
+    clean = np.isin(second.ids, first.ids[outside])
+    err = np.linalg.norm(second.pixels[clean] - second.history[clean, 1] - d, axis=1)
+    assert np.max(err) < 0.1
+
+
+def test_ids_history_and_replenishment() -> None:
+    # Pan 9 px per frame for 8 frames: features leave on one side, new ones fill in.
+    opts = TrackerOptions(max_features=300, history_len=4, redetect_below=1.0)
+    shifts = [np.array([-9.0 * k, 0.0]) for k in range(8)]
+    tracker = FeatureTracker(opts)
+    prev: Tracks | None = None
+    for k, d in enumerate(shifts):
+        tr = tracker.track(_shifted(d), 100 + k)
+        assert tr.history.shape == (tr.num_tracks, 4, 2) and tr.stamps_ns.shape == (4,)
+        expected_stamps = [100 + k - j if k - j >= 0 else -1 for j in range(4)]
+        np.testing.assert_array_equal(tr.stamps_ns, expected_stamps)
+        assert tr.stamp_ns == 100 + k
+        assert tr.ids.dtype == np.uint32 and tr.ages.dtype == np.int32
+        assert len(np.unique(tr.ids)) == tr.num_tracks
+        assert np.all(np.diff(tr.ids.astype(np.int64)) > 0)  # creation order
+        assert tr.num_tracks >= 0.97 * opts.max_features  # replenished every frame
+        np.testing.assert_array_equal(tr.pixels, tr.history[:, 0])
+        # history: valid exactly for the frames the track existed, moving 9 px/frame
+        for j in range(1, 4):
+            valid = tr.ages >= j
+            if not np.any(valid):
+                continue
+            assert np.all(np.isfinite(tr.history[valid, j]))
+            assert np.all(np.isnan(tr.history[~valid, j]))
+            step = tr.history[valid, j - 1] - tr.history[valid, j]
+            assert np.max(np.abs(step - [-9.0, 0.0])) < 0.1
+        if prev is not None:
+            assert tr.num_detected > 0  # the pan uncovers new texture
+            kept = np.isin(prev.ids, tr.ids)
+            assert np.count_nonzero(~kept) == tr.num_lost
+            idx = np.searchsorted(tr.ids, prev.ids[kept])
+            np.testing.assert_array_equal(tr.ages[idx], prev.ages[kept] + 1)
+            np.testing.assert_array_equal(tr.history[idx, 1], prev.pixels[kept])
+            np.testing.assert_array_equal(tr.history[idx, 2:], prev.history[kept, 1:3])
+            new = tr.ages == 0
+            assert np.count_nonzero(new) == tr.num_detected
+            assert np.all(tr.ids[new] > prev.ids.max())
+        prev = tr
+    assert np.max(prev.ages) == 7
+
+
+def test_detection_is_spread_and_spaced() -> None:
+    tracker = FeatureTracker(OPTS)
+    tr = tracker.track(IMAGE0, 0)
+    cols = np.clip(((tr.pixels[:, 0] + 0.5) * 8 // W).astype(int), 0, 7)
+    rows = np.clip(((tr.pixels[:, 1] + 0.5) * 6 // H).astype(int), 0, 5)
+    per_cell = np.bincount(rows * 8 + cols, minlength=48)
+    assert per_cell.max() <= int(np.ceil(300 / 48))  # share respected on uniform texture
+    assert per_cell.min() >= 2  # every cell populated
+    dist, _ = cKDTree(tr.pixels).query(tr.pixels, k=2)
+    assert np.min(dist[:, 1]) >= OPTS.min_distance_px - 1e-9
+    b = OPTS.border_px
+    assert np.all((tr.pixels >= b - 0.5) & (tr.pixels <= [W - 0.5 - b, H - 0.5 - b]))
+    # After a small shift, re-detection keeps new corners away from live tracks.
+    tracker2 = FeatureTracker(TrackerOptions(max_features=300, redetect_below=1.0))
+    tracker2.track(IMAGE0, 0)
+    tr2 = tracker2.track(_shifted(np.array([30.0, 0.0])), 1)
+    new = tr2.ages == 0
+    assert np.count_nonzero(new) > 0
+    dist, _ = cKDTree(tr2.pixels[~new]).query(tr2.pixels[new])
+    assert np.min(dist) >= 8.0 - 0.75  # disk mask on rounded positions
+
+
+def test_reset_and_size_change() -> None:
+    tracker = FeatureTracker(OPTS)
+    a = tracker.track(IMAGE0, 0)
+    small = IMAGE0[:200, :300].copy()
+    b = tracker.track(small, 1)
+    assert b.lost_by_reason["reset"] == a.num_tracks and b.num_lost == a.num_tracks
+    assert np.all(b.ages == 0) and b.ids.min() > a.ids.max()
+    tracker.reset()
+    assert tracker.num_tracks == 0
+    c = tracker.track(IMAGE0, 0)  # stamps may restart after a reset
+    assert c.ids.min() > b.ids.max()
+    assert set(c.lost_by_reason) == set(LOST_REASONS)
+
+
+def test_bad_inputs() -> None:
+    tracker = FeatureTracker(OPTS)
+    with pytest.raises(InvalidInputError, match=r"\(240, 320, 3\)"):
+        tracker.track(np.zeros((H, W, 3), np.uint8), 0)
+    with pytest.raises(InvalidInputError, match="float32"):
+        tracker.track(np.zeros((H, W), np.float32), 0)
+    tracker.track(IMAGE0, 10)
+    with pytest.raises(TimeError, match="10"):
+        tracker.track(IMAGE0, 10)
+    with pytest.raises(InvalidInputError, match=r"\(300, 2\).*\(3, 2\)"):
+        tracker.track(IMAGE0, 11, predict=lambda p: np.zeros((3, 2)))
+    with pytest.raises(InvalidInputError, match=r"max_features.*0"):
+        TrackerOptions(max_features=0)
+    with pytest.raises(InvalidInputError, match="lk_window_px must be odd, got 20"):
+        TrackerOptions(lk_window_px=20)
+    with pytest.raises(InvalidInputError, match=r"fb_threshold_px.*-1"):
+        TrackerOptions(fb_threshold_px=-1.0)
+
+
+def test_non_finite_prediction_falls_back_to_previous_position() -> None:
+    d = np.array([1.5, -0.5])
+    tracker = FeatureTracker(OPTS)
+    tracker.track(IMAGE0, 0)
+    tr = tracker.track(_shifted(d), 1, predict=lambda p: np.full_like(p, np.nan))
+    old = _tracked(tr)
+    assert np.count_nonzero(old) > 0.9 * OPTS.max_features
+    assert np.max(np.linalg.norm(tr.pixels[old] - tr.history[old, 1] - d, axis=1)) < 0.1
