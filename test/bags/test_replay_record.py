@@ -19,7 +19,7 @@ from sensor_msgs.msg import Imu
 from bags.io import BagReader, BagWriter, typestore
 from bags.record import RecordError, header_stamp_ns
 from bags.record import parse_options as parse_record
-from bags.replay import ReplayError
+from bags.replay import ReplayError, split_ros_args
 from bags.replay import parse_options as parse_replay
 from msg_adapters.image import array_to_image
 from msg_adapters.stamps import make_header
@@ -178,6 +178,14 @@ def test_replay_options_normalise_names():
     assert opts.topics == ("/imu", "/cam")
     assert opts.remap == (("/cam", "/image"),)
     assert opts.rate == 2.0
+
+
+def test_split_ros_args_keeps_our_remap():
+    own, ros = split_ros_args(
+        ["bag", "--remap", "/a:=/b", "--ros-args", "-p", "use_sim_time:=true", "--", "-l"]
+    )
+    assert own == ["bag", "--remap", "/a:=/b", "-l"]
+    assert ros == ["--ros-args", "-p", "use_sim_time:=true", "--"]
 
 
 @pytest.mark.parametrize(
