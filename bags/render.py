@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -312,7 +313,8 @@ class _RayGrid:
             nx = np.where(ok, r[..., 0] / np.where(ok, r[..., 2], 1.0), np.nan)
             ny = np.where(ok, r[..., 1] / np.where(ok, r[..., 2], 1.0), np.nan)
         self.wide = bool(np.any(~ok & np.isfinite(r[..., 2])))
-        with np.errstate(all="ignore"):
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows/columns
             self.col_lo = np.nan_to_num(np.nanmin(nx, axis=0), nan=np.inf)
             self.col_hi = np.nan_to_num(np.nanmax(nx, axis=0), nan=-np.inf)
             self.row_lo = np.nan_to_num(np.nanmin(ny, axis=1), nan=np.inf)

@@ -217,6 +217,19 @@ class Simulation:
         self.imu_options = replace(options.imu, seed=options.seed)
         self.R_bc = self.imu_options.R_bc
         self.camera = options.camera()
+        w, h = self.camera.width, self.camera.height
+        border = np.array(
+            [(u, v) for u in (0, w - 1) for v in range(h)]
+            + [(u, v) for v in (0, h - 1) for u in range(w)],
+            dtype=np.float64,
+        )
+        bad = ~np.all(np.isfinite(self.camera.pixel_to_bearing(border)), axis=-1)
+        if bad.any():
+            msg = (
+                f"distortion {list(options.distortion)} leaves {int(bad.sum())} border pixels "
+                "without a valid ray (the lens model folds over inside the image)"
+            )
+            raise ScenarioError(msg)
         self._static = [_scale_rect(r, k) for r in scenario.static]
         self._renderer: Renderer | None = None
         t_end = (options.num_frames - 1) / options.rate_hz
