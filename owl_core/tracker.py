@@ -11,7 +11,8 @@ Every frame the tracker
    (forward-backward check), whose window differs from the previous one by more
    than ``max_patch_error`` grey levels on average (occlusion, changed content:
    a wrong match can pass the round trip), that LK reports as failed, or that
-   leave the image;
+   leave the image; of two features that converge to within
+   ``merge_distance_px`` (e.g. while the camera backs away) the younger is dropped;
 3. detects new corners (``cv2.goodFeaturesToTrack``, Shi-Tomasi) away from the
    surviving features (``min_distance_px``) whenever fewer than
    ``redetect_below * max_features`` remain, spread over a ``grid_cols x
@@ -26,6 +27,7 @@ Pixel coordinates follow OpenCV: ``(u, v)``, centre of the top-left pixel at 0.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TypeVar
@@ -33,6 +35,7 @@ from typing import TypeVar
 import cv2
 import numpy as np
 import numpy.typing as npt
+from scipy.spatial import cKDTree
 
 from owl_core.errors import InvalidInputError, TimeError
 
@@ -42,7 +45,7 @@ Predictor = Callable[[FloatArray], npt.ArrayLike]
 __all__ = ["LOST_REASONS", "FeatureTracker", "TrackerOptions", "Tracks"]
 
 #: Keys of :attr:`Tracks.lost_by_reason`.
-LOST_REASONS = ("lk_failed", "fb_check", "patch_error", "left_image", "reset")
+LOST_REASONS = ("lk_failed", "fb_check", "patch_error", "left_image", "merged", "reset")
 
 
 @dataclass(frozen=True)
@@ -71,6 +74,9 @@ class TrackerOptions:
         fb_threshold_px: maximum forward-backward round-trip error, pixels.
         max_patch_error: maximum mean absolute grey-level difference between the
             LK windows in the two images (uint8 grey levels, 0..255).
+        merge_distance_px: tracked features closer than this are duplicates; the
+            younger one is dropped, pixels (0 disables; keep it below
+            ``min_distance_px``).
         redetect_below: detect new corners when fewer than
             ``redetect_below * max_features`` features survive, in (0, 1].
         history_len: number of positions kept per track (current one included, >= 2).
@@ -90,6 +96,7 @@ class TrackerOptions:
     lk_min_eigenvalue: float = 1e-4
     fb_threshold_px: float = 0.5
     max_patch_error: float = 20.0
+    merge_distance_px: float = 2.0
     redetect_below: float = 0.95
     history_len: int = 8
 
@@ -122,6 +129,7 @@ class TrackerOptions:
             "lk_min_eigenvalue": (self.lk_min_eigenvalue, 0.0, math.inf, True),
             "fb_threshold_px": (self.fb_threshold_px, 0.0, math.inf, False),
             "max_patch_error": (self.max_patch_error, 0.0, 255.0, False),
+            "merge_distance_px": (self.merge_distance_px, 0.0, math.inf, True),
             "redetect_below": (self.redetect_below, 0.0, 1.0, False),
         }
         for name, (fvalue, lo, hi, lo_ok) in floats.items():
@@ -157,7 +165,8 @@ class Tracks:
         lost_ids: (num_lost,) uint32 ids of the features lost in this frame.
         lost_by_reason: counts of lost features per reason (``LOST_REASONS``):
             LK failure, forward-backward check, patch difference, leaving the
-            image, reset (image size change).
+            image, merged into an older feature, reset (image size change).
+        timings: seconds spent in ``"lk"`` (both directions) and ``"detect"``.
     """
 
     ids: npt.NDArray[np.uint32]
@@ -169,6 +178,7 @@ class Tracks:
     num_lost: int = 0
     lost_ids: npt.NDArray[np.uint32] = field(default_factory=lambda: np.zeros(0, dtype=np.uint32))
     lost_by_reason: dict[str, int] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
 
     @property
     def num_tracks(self) -> int:
@@ -234,7 +244,9 @@ class FeatureTracker:
             )
         img = np.ascontiguousarray(img)
         stamp = int(stamp_ns)
+        opts = self.options
         lost_by_reason = dict.fromkeys(LOST_REASONS, 0)
+        timings = {"lk": 0.0, "detect": 0.0}
         lost_ids = np.zeros(0, dtype=np.uint32)
         if self._prev is not None and stamp <= int(self._stamps[0]):
             raise TimeError(
@@ -252,9 +264,18 @@ class FeatureTracker:
         )
         if self._prev is not None and self._ids.shape[0] > 0:
             prev = self._history[:, 1]
+            t0 = time.perf_counter()
             new_pos, reason = self._flow(self._prev, img, prev, predict)
+            timings["lk"] = time.perf_counter() - t0
+            if opts.merge_distance_px > 0:
+                alive = np.flatnonzero(reason == 0)
+                pairs = cKDTree(new_pos[alive]).query_pairs(
+                    opts.merge_distance_px, output_type="ndarray"
+                )
+                # ids grow with creation time: the larger index is the younger track.
+                reason[alive[pairs.max(axis=1)]] = 5
             keep = reason == 0
-            for code, name in enumerate(LOST_REASONS[:4], start=1):
+            for code, name in enumerate(LOST_REASONS[:5], start=1):
                 lost_by_reason[name] = int(np.count_nonzero(reason == code))
             lost_ids = np.concatenate([lost_ids, self._ids[~keep]])
             self._history[:, 0] = new_pos
@@ -263,9 +284,10 @@ class FeatureTracker:
             self._ages = self._ages[keep] + 1
 
         num_detected = 0
-        opts = self.options
         if self._ids.shape[0] < opts.redetect_below * opts.max_features:
+            t0 = time.perf_counter()
             corners = self._detect(img, self._history[:, 0])
+            timings["detect"] = time.perf_counter() - t0
             num_detected = corners.shape[0]
             new_hist = np.full((num_detected, opts.history_len, 2), np.nan)
             new_hist[:, 0] = corners
@@ -277,12 +299,16 @@ class FeatureTracker:
 
         self._prev = img
         self._shape = (int(img.shape[0]), int(img.shape[1]))
-        return self._snapshot(num_detected, lost_ids, lost_by_reason)
+        return self._snapshot(num_detected, lost_ids, lost_by_reason, timings)
 
     # ---------------------------------------------------------------- helpers
 
     def _snapshot(
-        self, num_detected: int, lost_ids: npt.NDArray[np.uint32], lost_by_reason: dict[str, int]
+        self,
+        num_detected: int,
+        lost_ids: npt.NDArray[np.uint32],
+        lost_by_reason: dict[str, int],
+        timings: dict[str, float],
     ) -> Tracks:
         return Tracks(
             ids=_frozen(self._ids),
@@ -294,6 +320,7 @@ class FeatureTracker:
             num_lost=int(lost_ids.shape[0]),
             lost_ids=_frozen(lost_ids.astype(np.uint32)),
             lost_by_reason=lost_by_reason,
+            timings=timings,
         )
 
     def _flow(

@@ -278,3 +278,27 @@ def test_non_finite_prediction_falls_back_to_previous_position() -> None:
     old = _tracked(tr)
     assert np.count_nonzero(old) > 0.9 * OPTS.max_features
     assert np.max(np.linalg.norm(tr.pixels[old] - tr.history[old, 1] - d, axis=1)) < 0.1
+
+
+def test_converging_tracks_are_merged_into_the_older() -> None:
+    # Detection 2 px apart, merging at 3 px: the first tracking step must merge
+    # every close pair, keeping the older (smaller id) feature.
+    opts = TrackerOptions(
+        max_features=300, min_distance_px=2.0, merge_distance_px=3.0, redetect_below=0.5
+    )
+    tracker = FeatureTracker(opts)
+    first = tracker.track(IMAGE0, 0)
+    close = cKDTree(first.pixels).query_pairs(3.0 - 0.2, output_type="ndarray")
+    assert close.shape[0] > 0
+    second = tracker.track(_shifted(np.array([0.6, 0.3])), 1)
+    old = _tracked(second)
+    assert second.lost_by_reason["merged"] > 0
+    dist, _ = cKDTree(second.pixels[old]).query(second.pixels[old], k=2)
+    assert np.min(dist[:, 1]) >= 3.0
+    # A rigid shift keeps each close pair closer than 3 px: never both alive,
+    # and where one survives it is the older.
+    younger_alive = np.isin(first.ids[close.max(axis=1)], second.ids)
+    older_alive = np.isin(first.ids[close.min(axis=1)], second.ids)
+    assert not np.any(younger_alive & older_alive)
+    assert np.count_nonzero(older_alive) > np.count_nonzero(younger_alive)
+    assert set(second.timings) == {"lk", "detect"} and second.timings["lk"] > 0.0
