@@ -266,13 +266,14 @@ def record(
         BagError: the output exists (without overwrite) or cannot be written.
     """
     import rclpy
+    from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
     writer = BagWriter(opts.out, overwrite=opts.overwrite)  # refuses an existing path early
     stop = _Stop()
     old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
-    context = rclpy.Context()
+    context = Context()
     rclpy.init(
         args=[PROG, *ros_args], context=context, signal_handler_options=SignalHandlerOptions.NO
     )

@@ -286,6 +286,7 @@ def replay(opts: ReplayOptions, ros_args: Sequence[str] = (), stream: TextIO = s
         ReplayError: unknown topic or type, subscribers missing after the timeout.
     """
     import rclpy
+    from rclpy.context import Context
     from rclpy.duration import Duration
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
@@ -298,7 +299,7 @@ def replay(opts: ReplayOptions, ros_args: Sequence[str] = (), stream: TextIO = s
         total = sum(infos[t].count for t in selected)
         stop = _Stop()
         old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
-        context = rclpy.Context()
+        context = Context()
         rclpy.init(
             args=[PROG, *ros_args],
             context=context,
