@@ -98,8 +98,8 @@ class EngineOptions:
     max_features: int = 1000
     tracker: TrackerOptions = field(default_factory=TrackerOptions)
     fit_frames: int = 5
-    fit_order: int = 2
-    min_track_frames: int = 3
+    fit_order: int = 1
+    min_track_frames: int = 5
     pixel_noise_px: float = 0.15
     neighbours: int = 10
     neighbour_radius_px: float = 80.0
@@ -209,50 +209,82 @@ def _empty_result(
     )
 
 
-def fit_tracks(
-    bearings: FloatArray, tau_s: FloatArray, mask: BoolArray, order: int
-) -> tuple[FloatArray, FloatArray, BoolArray]:
-    """Weighted polynomial fit of bearing against time per track, evaluated at tau = 0.
+@dataclass(frozen=True)
+class TrackFit:
+    """Per-track bearing-vs-time fit, N tracks.
+
+    Attributes:
+        bearing: (N, 3) unit bearing at ``tau_ref`` (current camera orientation).
+        rate: (N, 3) derotated bearing rate at ``tau_ref``, tangent to ``bearing``, 1/s.
+        tau_ref: (N,) time the fit refers to, relative to the current frame, s (<= 0):
+            the track's time centroid for a straight-line fit (where its slope is the
+            velocity, free of the lag a constant-velocity assumption would cause), 0 for the
+            quadratic fit.
+        gain: (N,) standard deviation of ``rate`` per unit bearing noise, 1/s.
+        valid: (N,) bool.
+    """
+
+    bearing: FloatArray
+    rate: FloatArray
+    tau_ref: FloatArray
+    gain: FloatArray
+    valid: BoolArray
+
+
+def fit_tracks(bearings: FloatArray, tau_s: FloatArray, mask: BoolArray, order: int) -> TrackFit:
+    """Weighted polynomial fit of bearing against time per track (vectorised).
 
     Args:
         bearings: (N, W, 3) bearings of each track, already in the current camera frame.
         tau_s: (W,) time of each column relative to the current frame, seconds (<= 0).
         mask: (N, W) bool, valid entries.
-        order: 1 or 2; tracks with fewer than order + 1 points fall back to order 1.
+        order: 1 (straight line, referred to the time centroid) or 2 (quadratic, referred
+            to tau = 0; tracks with only 2 points fall back to a line).
 
     Returns:
-        rate: (N, 3) d(bearing)/dt at tau = 0, 1/s (NaN where invalid);
-        gain: (N,) standard deviation of the rate per unit bearing noise, 1/s
-            (rate sigma = gain * bearing sigma);
-        valid: (N,) bool, at least two frames with distinct times.
+        :class:`TrackFit`; invalid tracks (fewer than two frames) hold NaN.
     """
     n = bearings.shape[0]
     m = mask.astype(np.float64)
     b = np.where(mask[..., None], bearings, 0.0)
     count = m.sum(axis=1)
+    out_b = np.full((n, 3), np.nan)
     rate = np.full((n, 3), np.nan)
+    tau_ref = np.zeros(n)
     gain = np.full(n, np.inf)
     valid = np.zeros(n, dtype=bool)
-    for p in (1, 2) if order == 2 else (1,):
-        use = count >= p + 1
-        if p == 1:
-            use &= count >= 2
-        else:
-            use &= count >= 3
-        if not use.any():
-            continue
-        powers = np.stack([tau_s**j for j in range(p + 1)], axis=1)  # (W, p+1)
-        normal = np.einsum("nw,wi,wj->nij", m[use], powers, powers)
-        rhs = np.einsum("nw,wi,nwc->nic", m[use], powers, b[use])
-        det_ok = np.abs(np.linalg.det(normal)) > 1e-30
-        safe = np.where(det_ok[:, None, None], normal, np.eye(p + 1))
-        inv = np.linalg.inv(safe)
-        coef = inv @ rhs  # (n_use, p+1, 3)
-        idx = np.flatnonzero(use)
-        rate[idx[det_ok]] = coef[det_ok, 1]
-        gain[idx[det_ok]] = np.sqrt(np.maximum(inv[det_ok, 1, 1], 0.0))
-        valid[idx[det_ok]] = True
-    return rate, gain, valid
+    # straight line about the time centroid: b = mean + v (tau - centroid)
+    s0 = np.maximum(count, 1.0)
+    centroid = (m @ tau_s) / s0
+    dt = tau_s[None, :] - centroid[:, None]
+    sxx = np.sum(m * dt * dt, axis=1)
+    line = (count >= 2) & (sxx > 1e-18)
+    safe = np.where(line, sxx, 1.0)
+    mean = np.einsum("nw,nwc->nc", m, b) / s0[:, None]
+    slope = np.einsum("nw,nwc->nc", m * dt, b) / safe[:, None]
+    out_b[line] = mean[line]
+    rate[line] = slope[line]
+    tau_ref[line] = centroid[line]
+    gain[line] = 1.0 / np.sqrt(safe[line])
+    valid |= line
+    if order == 2:
+        quad = count >= 3
+        if quad.any():
+            powers = np.stack([np.ones_like(tau_s), tau_s, tau_s**2], axis=1)  # (W, 3)
+            normal = np.einsum("nw,wi,wj->nij", m[quad], powers, powers)
+            rhs = np.einsum("nw,wi,nwc->nic", m[quad], powers, b[quad])
+            ok = np.abs(np.linalg.det(normal)) > 1e-30
+            inv = np.linalg.inv(np.where(ok[:, None, None], normal, np.eye(3)))
+            coef = inv @ rhs
+            idx = np.flatnonzero(quad)[ok]
+            out_b[idx] = coef[ok, 0]
+            rate[idx] = coef[ok, 1]
+            tau_ref[idx] = 0.0
+            gain[idx] = np.sqrt(np.maximum(inv[ok, 1, 1], 0.0))
+    norm = np.linalg.norm(out_b, axis=1, keepdims=True)
+    out_b = out_b / np.where(norm > 0, norm, 1.0)
+    rate = rate - np.einsum("nc,nc->n", rate, out_b)[:, None] * out_b
+    return TrackFit(out_b, rate, tau_ref, gain, valid)
 
 
 class OwlEngine:
@@ -462,8 +494,8 @@ class OwlEngine:
         tau = np.where(stamps[:w] >= 0, (stamps[:w] - stamp) * 1e-9, 0.0)
         enough = mask.sum(axis=1) >= opts.min_track_frames
         enough &= mask[:, 0]
-        rate, gain, fit_ok = fit_tracks(bearings_h, tau, mask & enough[:, None], opts.fit_order)
-        ok = enough & fit_ok
+        fit = fit_tracks(bearings_h, tau, mask & enough[:, None], opts.fit_order)
+        ok = enough & fit.valid
         young = int(np.count_nonzero(~enough))
         if young:
             dropped["young_track"] = young
@@ -474,11 +506,12 @@ class OwlEngine:
             timings["integrate"] = time.perf_counter() - t0
             return finish()
         idx = np.flatnonzero(ok)
-        e = bearings_h[idx, 0]
-        f = rate[idx]
-        f = f - np.einsum("ni,ni->n", f, e)[:, None] * e
+        e_now = bearings_h[idx, 0]
+        e = fit.bearing[idx]
+        f = fit.rate[idx]
+        tau_ref = fit.tau_ref[idx]
         bearing_sigma = opts.pixel_noise_px / max(self.camera.fx, self.camera.fy)
-        f_sigma = gain[idx] * bearing_sigma
+        f_sigma = fit.gain[idx] * bearing_sigma
         pixels = tracks.pixels[idx]
         ids = tracks.ids[idx]
         timings["integrate"] = time.perf_counter() - t0
@@ -528,6 +561,8 @@ class OwlEngine:
             dist, nb = dist[:, 1:], nb[:, 1:]
             nb_mask = np.isfinite(dist) & (nb < idx.size)
             nb_safe = np.where(nb_mask, nb, 0)
+            # neighbours must refer to the same time (tracks of different lengths do not)
+            nb_mask &= np.abs(tau_ref[nb_safe] - tau_ref[:, None]) < 1e-4
             noise = math.sqrt(2.0) * float(np.median(f_sigma))
             local = motion.fit_local_looming(
                 e,
@@ -559,7 +594,27 @@ class OwlEngine:
             route.valid & ~moving,
         )
         fused = motion.fuse_looming(local, route, idx.size, max_disagreement=opts.moving_sigma)
-        quantities = motion.owl_quantities(e, fused.looming, omega, min_tor=opts.min_tor)
+        at_ref = motion.owl_quantities(e, fused.looming, omega, min_tor=opts.min_tor)
+        # Bring each point from its fit's reference time to the current stamp: under a
+        # constant relative velocity the scaled point moves by -heading per second.
+        point_now = at_ref.points + at_ref.heading * tau_ref[:, None]
+        ros_now = np.linalg.norm(point_now, axis=1)
+        ahead = np.einsum("ni,ni->n", point_now, e_now) > 0
+        ok_now = at_ref.valid & ahead & (ros_now > 0)
+        safe_ros = np.where(ok_now, ros_now, 1.0)
+        h_i = np.where(ok_now[:, None], at_ref.heading, 0.0)
+        looming_now = np.einsum("ni,ni->n", h_i, e_now) / safe_ros
+        omega_now = np.cross(e_now, h_i) / safe_ros[:, None]
+        quantities = motion.owl_quantities(e_now, looming_now, omega_now, min_tor=opts.min_tor)
+        quantities = motion.OwlQuantities(
+            quantities.tor,
+            quantities.rot,
+            quantities.range_over_speed,
+            quantities.points,
+            quantities.heading,
+            quantities.alpha,
+            quantities.valid & ok_now,
+        )
         q_local = (
             np.where(local.valid, local.quality, 1.0) if local is not None else np.ones(idx.size)
         )
@@ -585,9 +640,9 @@ class OwlEngine:
         return FrameResult(
             stamp_ns=stamp,
             pixels=pixels[keep],
-            bearings=e[keep],
-            looming=fused.looming[keep],
-            omega=omega[keep],
+            bearings=e_now[keep],
+            looming=looming_now[keep],
+            omega=omega_now[keep],
             rot=quantities.rot[keep],
             range_over_speed=quantities.range_over_speed[keep],
             points=quantities.points[keep],
