@@ -380,6 +380,8 @@ class Renderer:
         noise_sigma: standard deviation of the additive Gaussian image noise, grey levels.
         seed: base seed of the image noise (frame k uses the stream (seed, k)).
         encoding: "mono8" or "rgb8".
+        mipmap: filter textures by the ray footprint (True). False samples the finest
+            level only (aliased; for comparisons and tests).
 
     Raises:
         ScenarioError: invalid supersample, noise or encoding (names the value).
@@ -393,6 +395,7 @@ class Renderer:
         noise_sigma: float = 2.0,
         seed: int = 0,
         encoding: str = "mono8",
+        mipmap: bool = True,
     ) -> None:
         if not isinstance(supersample, int) or not 1 <= supersample <= 4:
             msg = f"supersample must be an integer in 1..4, got {supersample!r}"
@@ -408,6 +411,7 @@ class Renderer:
         self.noise_sigma = float(noise_sigma)
         self.seed = int(seed)
         self.encoding = encoding
+        self.mipmap = bool(mipmap)
         self._fine = _ray_grid(camera, supersample)
         self._centre = self._fine if supersample == 1 else _ray_grid(camera, 1)
 
@@ -559,6 +563,8 @@ class Renderer:
         inv_texel = np.float32(1.0 / rect.texel_m)
         with np.errstate(divide="ignore"):
             lod = np.log2(np.maximum(footprint * inv_texel, np.float32(1.0)))
+        if not self.mipmap:
+            lod = np.zeros_like(lod)
         tex = texture(rect.texture_seed % TEXTURE_POOL)
         # decorrelate rectangles sharing a tile: a texel offset per rectangle seed
         ox = np.float32((rect.texture_seed * 7919) % TEXTURE_SIZE)
