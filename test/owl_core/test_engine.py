@@ -1,0 +1,223 @@
+"""OwlEngine: options, input checks, gyro handling, time handling, and the track fit.
+
+Uses a short rendered street scenario (bags.scenarios, 320x240, 0.5 s at 30 Hz), rendered
+once per module.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from bags import scenarios
+from owl_core.engine import EngineOptions, OwlEngine, fit_tracks
+from owl_core.errors import InvalidInputError
+from owl_core.types import GyroSamples, ImageFrame, PointFlag
+
+SIM_OPTS = scenarios.SimOptions(seconds=0.5, width=320, height=240)
+
+
+@pytest.fixture(scope="module")
+def street() -> tuple[scenarios.Simulation, list[scenarios.Frame]]:
+    sim = scenarios.get("street").simulate(SIM_OPTS)
+    return sim, list(sim.frames())
+
+
+def make_engine(sim: scenarios.Simulation, **overrides: object) -> OwlEngine:
+    opts = EngineOptions(
+        camera_to_imu_rotation_xyzw=sim.camera_to_imu_xyzw,
+        imu_time_offset_s=sim.imu_time_offset_ns * 1e-9,
+        max_features=400,
+    )
+    return OwlEngine(sim.camera, replace(opts, **overrides))  # type: ignore[arg-type]
+
+
+def test_options_validation_names_the_value() -> None:
+    with pytest.raises(InvalidInputError, match="fit_frames"):
+        EngineOptions(fit_frames=1)
+    with pytest.raises(InvalidInputError, match="min_track_frames"):
+        EngineOptions(fit_frames=3, min_track_frames=4)
+    with pytest.raises(InvalidInputError, match=r"pixel_noise_px.*-1"):
+        EngineOptions(pixel_noise_px=-1.0)
+    with pytest.raises(InvalidInputError, match="fit_order"):
+        EngineOptions(fit_order=3)
+    with pytest.raises(InvalidInputError, match="camera_to_imu_rotation_xyzw"):
+        EngineOptions(camera_to_imu_rotation_xyzw=(0.0, 0.0, float("nan"), 1.0))
+    with pytest.raises(InvalidInputError, match="bias_inflation"):
+        EngineOptions(bias_inflation=0.5)
+
+
+def test_bad_image_raises(street: tuple[scenarios.Simulation, list[scenarios.Frame]]) -> None:
+    sim, _ = street
+    engine = make_engine(sim)
+    with pytest.raises(InvalidInputError, match=r"\(10, 10\)"):
+        engine.process(ImageFrame(0, np.zeros((10, 10), dtype=np.uint8)))
+    with pytest.raises(InvalidInputError, match="uint8"):
+        engine.process(ImageFrame(0, np.zeros((240, 320), dtype=np.float32)))  # type: ignore[arg-type]
+
+
+def test_fit_tracks_exact_for_linear_motion() -> None:
+    """A bearing moving linearly in time: the line fit returns it at the time centroid."""
+    tau = np.array([0.0, -0.1, -0.2, -0.3, -0.4])
+    v = np.array([0.1, -0.05, 0.0])
+    b0 = np.array([0.0, 0.0, 1.0])
+    bearings = (b0 + tau[:, None] * v)[None]
+    mask = np.array([[True, True, True, True, False]])
+    fit = fit_tracks(bearings, tau, mask, order=1)
+    assert fit.valid[0]
+    np.testing.assert_allclose(fit.tau_ref[0], -0.15)
+    centre = b0 - 0.15 * v
+    np.testing.assert_allclose(fit.bearing[0], centre / np.linalg.norm(centre))
+    expected = v - (v @ fit.bearing[0]) * fit.bearing[0]
+    np.testing.assert_allclose(fit.rate[0], expected, atol=1e-12)
+    # slope sigma per unit noise = 1/sqrt(sum (tau - mean)^2)
+    np.testing.assert_allclose(fit.gain[0], 1.0 / np.sqrt(0.05))
+    quad = fit_tracks(bearings, tau, mask, order=2)
+    np.testing.assert_allclose(quad.tau_ref[0], 0.0)
+    one = fit_tracks(bearings, tau, np.array([[True, False, False, False, False]]), order=1)
+    assert not one.valid[0] and np.isnan(one.rate[0]).all()
+
+
+def test_first_frames_give_reasons_then_points(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
+) -> None:
+    sim, frames = street
+    engine = make_engine(sim)
+    engine.add_gyro(sim.gyro_samples())
+    results = [engine.process(ImageFrame(f.stamp_ns, f.image)) for f in frames]
+    first = results[0]
+    assert first.num_points == 0 and any("frames yet" in r for r in first.reasons)
+    assert first.dropped.get("young_track", 0) > 0
+    later = results[-1]
+    assert later.num_points > 100
+    assert later.heading is not None and np.isfinite(later.heading_sigma_rad)
+    n = later.num_points
+    for name in ("pixels", "bearings", "omega", "points"):
+        assert getattr(later, name).shape[0] == n
+    assert later.rot.shape == (n, 4) and later.ids.dtype == np.uint32
+    assert later.flags.dtype == np.uint8
+    assert np.all((later.quality >= 0) & (later.quality <= 1))
+    # every point says which route(s) gave L
+    routes = later.flags & (PointFlag.L_LOCAL | PointFlag.L_HEADING)
+    assert np.all(routes > 0)
+    # RoT is the quaternion inverse of ToR = (L, omega)
+    tor = np.column_stack([later.looming, later.omega])
+    prod_w = later.rot[:, 0] * tor[:, 0] - np.sum(later.rot[:, 1:] * tor[:, 1:], axis=1)
+    np.testing.assert_allclose(prod_w, 1.0, atol=1e-9)
+    np.testing.assert_allclose(
+        np.linalg.norm(later.points, axis=1), later.range_over_speed, rtol=1e-12
+    )
+    for key in ("track", "integrate", "heading", "looming", "total"):
+        assert later.timings[key] >= 0
+    assert later.timings["total"] >= later.timings["track"]
+
+
+def test_require_gyro_without_samples_gives_no_points(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
+) -> None:
+    sim, frames = street
+    engine = make_engine(sim)
+    results = [engine.process(ImageFrame(f.stamp_ns, f.image)) for f in frames[:7]]
+    assert all(r.num_points == 0 for r in results)
+    assert any("no gyro samples (require_gyro)" in r for r in results[-1].reasons)
+    assert results[-1].dropped["no_gyro"] > 0
+
+
+def test_without_gyro_points_are_flagged_and_rotation_comes_from_the_flow(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
+) -> None:
+    sim, frames = street
+    engine = make_engine(sim, require_gyro=False)
+    results = [engine.process(ImageFrame(f.stamp_ns, f.image)) for f in frames]
+    last = results[-1]
+    assert last.num_points > 50
+    assert np.all(last.flags & PointFlag.NO_GYRO)
+    assert not np.any(last.flags & PointFlag.IMU_GAP)
+    assert any("without gyro" in r for r in last.reasons)
+    # the camera yaws at up to 0.4 rad/s; the flow alone still gives the heading
+    assert last.heading is not None
+    truth = frames[-1].velocity / np.linalg.norm(frames[-1].velocity)
+    assert np.degrees(np.arccos(last.heading @ truth)) < 3.0
+
+
+def test_imu_gap(street: tuple[scenarios.Simulation, list[scenarios.Frame]]) -> None:
+    sim, frames = street
+    gyro = sim.gyro_samples()
+    # IMU samples stop 0.2 s into the run (camera clock = IMU clock here)
+    cut = frames[6].stamp_ns + sim.imu_time_offset_ns
+    keep = gyro.stamp_ns <= cut
+    partial = GyroSamples(gyro.stamp_ns[keep], gyro.angular_velocity[keep])
+    strict = make_engine(sim)
+    strict.add_gyro(partial)
+    assert strict.covers(frames[0].stamp_ns)
+    res = [strict.process(ImageFrame(f.stamp_ns, f.image)) for f in frames[:10]]
+    assert not strict.covers(frames[10].stamp_ns)
+    assert res[-1].num_points == 0
+    assert any("IMU does not cover" in r for r in res[-1].reasons)
+    lenient = make_engine(sim, require_gyro=False)
+    lenient.add_gyro(partial)
+    res = [lenient.process(ImageFrame(f.stamp_ns, f.image)) for f in frames[:12]]
+    assert res[-1].num_points > 0
+    assert np.all(res[-1].flags & PointFlag.IMU_GAP)
+    assert np.all(res[-1].flags & PointFlag.NO_GYRO)
+
+
+def test_time_going_backwards_resets_tracks(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
+) -> None:
+    sim, frames = street
+    engine = make_engine(sim)
+    engine.add_gyro(sim.gyro_samples())
+    for f in frames[:8]:
+        engine.process(ImageFrame(f.stamp_ns, f.image))
+    back = engine.process(ImageFrame(frames[2].stamp_ns, frames[2].image))
+    assert back.num_points == 0
+    assert any("backwards" in r for r in back.reasons)
+    # it carries on normally afterwards
+    for f in frames[3:12]:
+        res = engine.process(ImageFrame(f.stamp_ns, f.image))
+    assert res.num_points > 0
+    # a gyro run from before the newest sample clears the gyro buffer instead of being dropped
+    gyro = sim.gyro_samples()
+    assert engine.add_gyro(gyro) == gyro.stamp_ns.shape[0]
+
+
+def test_large_frame_gap_resets(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
+) -> None:
+    sim, frames = street
+    engine = make_engine(sim, max_frame_gap_s=0.05)
+    engine.add_gyro(sim.gyro_samples())
+    engine.process(ImageFrame(frames[0].stamp_ns, frames[0].image))
+    res = engine.process(ImageFrame(frames[3].stamp_ns, frames[3].image))  # 0.1 s later
+    assert any("frame gap" in r for r in res.reasons)
+
+
+def test_reset_forgets_everything(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
+) -> None:
+    sim, frames = street
+    engine = make_engine(sim, initial_bias_imu=(0.001, 0.0, 0.0))
+    engine.add_gyro(sim.gyro_samples())
+    for f in frames[:8]:
+        engine.process(ImageFrame(f.stamp_ns, f.image))
+    engine.reset()
+    np.testing.assert_array_equal(engine.gyro_bias, [0.001, 0.0, 0.0])
+    assert len(engine.gyro) == 0
+    res = engine.process(ImageFrame(frames[8].stamp_ns, frames[8].image))
+    assert res.num_points == 0
+
+
+def test_deterministic(street: tuple[scenarios.Simulation, list[scenarios.Frame]]) -> None:
+    sim, frames = street
+    outs = []
+    for _ in range(2):
+        engine = make_engine(sim)
+        engine.add_gyro(sim.gyro_samples())
+        for f in frames[:9]:
+            res = engine.process(ImageFrame(f.stamp_ns, f.image))
+        outs.append(res)
+    np.testing.assert_array_equal(outs[0].looming, outs[1].looming)
+    np.testing.assert_array_equal(outs[0].ids, outs[1].ids)
