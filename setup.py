@@ -8,7 +8,11 @@ PACKAGE = "owl_ros"
 
 # Each executable is registered once it is real; `ros2 run owl_ros <name>` finds
 # it under lib/owl_ros (setup.cfg), a pip/venv install puts it on PATH.
-CONSOLE_SCRIPTS = []
+CONSOLE_SCRIPTS = [
+    "owl_make_bag = bags.make_bag:main",
+    "owl_replay = bags.replay:main",
+    "owl_record = bags.record:main",
+]
 
 setup(
     name=PACKAGE,
