@@ -342,7 +342,10 @@ def options_from_args(args: argparse.Namespace) -> SimOptions:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``owl_make_bag``; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as done:  # --help, or a usage error already printed on one line
+        return done.code if isinstance(done.code, int) else 2
     if args.list:
         width = max(len(n) for n in scenarios.names())
         for name, text in scenarios.DESCRIPTIONS.items():
