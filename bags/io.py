@@ -210,10 +210,17 @@ class BagReader:
 
     def _open_indexed(self) -> None:
         target = self.path
-        if self.path.is_file() and self.path.suffix != ".mcap":
-            # rosbags picks the storage plugin by suffix; an MCAP under another name is
-            # read through the recovery path (it needs no index).
-            msg = f"truncated or corrupt bag {self.path}: MCAP file without .mcap suffix"
+        if self.path.is_dir() and not (self.path / "metadata.yaml").is_file():
+            # only reached with recover=True: an unfinished recording directory
+            if len(self._mcap_files) != 1:
+                msg = (
+                    f"bag {self.path} has no metadata.yaml and {len(self._mcap_files)} .mcap files"
+                )
+                raise CorruptBagError(msg)
+            target = self._mcap_files[0]
+        if target.is_file() and target.suffix != ".mcap":
+            # rosbags picks the storage plugin by suffix; recover=True reads it sequentially
+            msg = f"cannot index {self.path}: an MCAP file needs the .mcap suffix"
             raise CorruptBagError(msg)
         reader = Reader(target)
         try:

@@ -192,6 +192,23 @@ def test_truncated_file_is_one_line_error_and_recoverable(tmp_path: Path) -> Non
     # what was recovered is an exact prefix of what was written (none of it invented)
     assert 0 < len(got) < len(written)
     assert got == written[: len(got)]
+    # an unfinished recording: no metadata.yaml, truncated .mcap
+    (out / "metadata.yaml").unlink()
+    with pytest.raises(NotABagError):
+        BagReader(out)
+    with BagReader(out, recover=True) as bag:
+        assert list(bag.messages()) == got
+        assert bag.topics["/imu/data"].qos_kind == "sensor"
+        assert bag.topics["/tf_static"].qos_kind == "latched"
+
+
+def test_recover_reads_an_intact_mcap_without_metadata(tmp_path: Path) -> None:
+    out = tmp_path / "bag"
+    written = _write_sample(out)
+    (out / "metadata.yaml").unlink()
+    with BagReader(out, recover=True) as bag:
+        assert bag.damage is None  # indexed read of the single .mcap
+        assert list(bag.messages()) == written
 
 
 def test_not_a_bag_and_missing(tmp_path: Path) -> None:
