@@ -548,11 +548,11 @@ class OwlEngine:
         heading = est.heading
         self._last_heading = heading
         # remove the leftover rotation found jointly with the heading
-        f = f + np.cross(est.rotation_error, e)
+        f = f + motion.cross(est.rotation_error, e)
 
         # -------------------------------------------------------------- looming
         t0 = time.perf_counter()
-        omega = np.cross(f, e)
+        omega = motion.cross(f, e)
         k = min(opts.neighbours, idx.size - 1)
         local: motion.LocalFit | None = None
         if k >= opts.min_neighbours:
@@ -604,7 +604,7 @@ class OwlEngine:
         safe_ros = np.where(ok_now, ros_now, 1.0)
         h_i = np.where(ok_now[:, None], at_ref.heading, 0.0)
         looming_now = np.einsum("ni,ni->n", h_i, e_now) / safe_ros
-        omega_now = np.cross(e_now, h_i) / safe_ros[:, None]
+        omega_now = motion.cross(e_now, h_i) / safe_ros[:, None]
         quantities = motion.owl_quantities(e_now, looming_now, omega_now, min_tor=opts.min_tor)
         quantities = motion.OwlQuantities(
             quantities.tor,

@@ -21,12 +21,14 @@ the epipolar great circle through ``e``, in 1/s, whose noise equals the per-axis
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from owl_core.errors import InvalidInputError
+from owl_core.motion import cross
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -39,6 +41,7 @@ class HeadingOptions:
     Attributes:
         ransac_hypotheses: number of 2-point heading hypotheses scored at once.
         starts: Gauss-Newton refinements run from this many of the best distinct hypotheses.
+        warm_starts: ... when an initial heading is given (it is refined too), this many.
         inlier_sigma: a point is an inlier (static) when its coplanarity residual is below
             this many of its standard deviations.
         irls_iterations: Gauss-Newton / reweighting iterations on (heading, rotation).
@@ -55,6 +58,7 @@ class HeadingOptions:
 
     ransac_hypotheses: int = 128
     starts: int = 4
+    warm_starts: int = 1
     inlier_sigma: float = 3.0
     irls_iterations: int = 6
     cauchy_sigma: float = 2.5
@@ -106,11 +110,16 @@ class MotionEstimate:
 
 
 def _orthonormal(h: FloatArray) -> tuple[FloatArray, FloatArray]:
-    helper = np.zeros(3)
-    helper[int(np.argmin(np.abs(h)))] = 1.0
-    u1 = np.cross(helper, h)
-    u1 /= np.linalg.norm(u1)
-    return u1, np.cross(h, u1)
+    x, y, z = float(h[0]), float(h[1]), float(h[2])
+    if abs(x) <= abs(y) and abs(x) <= abs(z):  # helper (1, 0, 0): u1 = helper x h
+        u1 = np.array([0.0, -z, y])
+    elif abs(y) <= abs(z):  # helper (0, 1, 0)
+        u1 = np.array([z, 0.0, -x])
+    else:  # helper (0, 0, 1)
+        u1 = np.array([-y, x, 0.0])
+    u1 /= math.sqrt(float(u1 @ u1))
+    u2 = np.array([y * u1[2] - z * u1[1], z * u1[0] - x * u1[2], x * u1[1] - y * u1[0]])
+    return u1, u2
 
 
 def coplanarity_residuals(
@@ -142,8 +151,8 @@ def coplanarity_residuals(
     if h.shape[-1:] != (3,) or h.ndim > 2:
         raise InvalidInputError(f"heading must have shape (3,) or (M, 3), got {h.shape}")
     if rotation_error is not None:
-        f = f + np.cross(np.asarray(rotation_error, dtype=np.float64), e)
-    n = np.cross(e, f)
+        f = f + cross(np.asarray(rotation_error, dtype=np.float64), e)
+    n = cross(e, f)
     num = h @ n.T
     hn = h / np.linalg.norm(h, axis=-1, keepdims=True)
     sin = np.sqrt(np.maximum(1.0 - (hn @ e.T) ** 2, 0.0))  # |h x e| for unit e
@@ -155,7 +164,7 @@ def _rotation_only(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Fit f = e x delta' (no translation; delta' = -delta) robustly. Returns delta, cov, res."""
     # e x d = skew(e) d; skew(e)^T skew(e) = I - e e^T and skew(e)^T f = f x e (unit e).
-    fxe = np.cross(f, e)
+    fxe = cross(f, e)
     w = 1.0 / sigma**2
     delta_p = np.zeros(3)
     res = np.zeros(e.shape[0])
@@ -165,7 +174,7 @@ def _rotation_only(
         rhs = w @ fxe
         cov = np.asarray(np.linalg.inv(normal), dtype=np.float64)
         delta_p = cov @ rhs
-        r = f - np.cross(e, delta_p)
+        r = f - cross(e, delta_p)
         res = np.sqrt(np.einsum("na,na->n", r, r)) / sigma
         w = 1.0 / sigma**2 / (1.0 + (res / 3.0) ** 2)
     # f_true = f + delta x e = 0  <=>  f = e x delta, so delta = delta'.
@@ -291,7 +300,7 @@ def estimate_motion(
     robust_rms = float(np.median(rot_res)) / 1.1774  # median of a chi(2) variable
     flow_snr = float(np.median(np.linalg.norm(fs, axis=1) / ss))
     if robust_rms < opts.still_ratio or flow_snr < opts.min_translation_snr:
-        r_all = fu - np.cross(eu, rot_delta)
+        r_all = fu - cross(eu, rot_delta)
         inl = np.zeros(n, dtype=bool)
         inl[usable] = np.sqrt(np.einsum("na,na->n", r_all, r_all)) / su < opts.inlier_sigma * 1.5
         return MotionEstimate(
@@ -301,10 +310,10 @@ def estimate_motion(
         )  # fmt: skip
 
     # 2. RANSAC on the heading with delta = 0: h = n_a x n_b for two random points.
-    nvec = np.cross(es, fs)
+    nvec = cross(es, fs)
     m = opts.ransac_hypotheses
     pairs = rng.integers(0, es.shape[0], size=(m, 2))
-    hyp = np.cross(nvec[pairs[:, 0]], nvec[pairs[:, 1]])
+    hyp = cross(nvec[pairs[:, 0]], nvec[pairs[:, 1]])
     hn = np.linalg.norm(hyp, axis=1)
     hyp = hyp[hn > 0] / hn[hn > 0, None]
     if hyp.shape[0] == 0:
@@ -324,7 +333,7 @@ def estimate_motion(
         cand = hyp[idx]
         if all(abs(float(cand @ s0)) < np.cos(np.radians(2.0)) for s0 in starts):
             starts.append(cand)
-        if len(starts) >= opts.starts + (initial_heading is not None):
+        if len(starts) >= (opts.starts if initial_heading is None else 1 + opts.warm_starts):
             break
 
     # 3. Gauss-Newton with Cauchy weights on (h, delta), prior on delta, from each start;
@@ -348,7 +357,7 @@ def estimate_motion(
     sin = np.maximum(np.sqrt(np.maximum(1.0 - (eu @ h) ** 2, 0.0)), opts.min_sin)
     inl_u = np.abs(res) < opts.inlier_sigma
     # point in front: f_true . h < 0 (allow noise)
-    f_true = fu + np.cross(delta, eu)
+    f_true = fu + cross(delta, eu)
     inl_u &= (f_true @ h) < opts.inlier_sigma * su * sin
     if np.sum(f_true[inl_u] @ h) > 0:
         h = -h
@@ -379,8 +388,8 @@ def point_heading_disagreement(
     """
     ph = np.asarray(point_headings, dtype=np.float64)
     h = np.asarray(heading, dtype=np.float64)
-    cross = np.linalg.norm(np.cross(ph, h), axis=-1)
-    return np.asarray(np.arctan2(cross, ph @ h), dtype=np.float64)
+    sin = np.linalg.norm(cross(ph, h), axis=-1)
+    return np.asarray(np.arctan2(sin, ph @ h), dtype=np.float64)
 
 
 class GyroBiasFilter:

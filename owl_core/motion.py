@@ -34,6 +34,22 @@ BoolArray = npt.NDArray[np.bool_]
 DEFAULT_MIN_TOR = 1e-9
 
 
+def cross(a: npt.ArrayLike, b: npt.ArrayLike) -> FloatArray:
+    """Cross product over the last axis (broadcasting), faster than np.cross for small N.
+
+    Args:
+        a, b: (..., 3) float64 vectors.
+
+    Returns:
+        (..., 3) float64 a x b.
+    """
+    x = np.asarray(a, dtype=np.float64)
+    y = np.asarray(b, dtype=np.float64)
+    x0, x1, x2 = x[..., 0], x[..., 1], x[..., 2]
+    y0, y1, y2 = y[..., 0], y[..., 1], y[..., 2]
+    return np.stack([x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0], axis=-1)
+
+
 def _as_vectors(name: str, value: npt.ArrayLike, dim: int = 3) -> FloatArray:
     arr = np.asarray(value, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != dim:
@@ -76,7 +92,7 @@ def derotate(
         raise InvalidInputError(
             f"angular_velocity must have shape (3,) or {e.shape}, got {w.shape}"
         )
-    return de + np.cross(np.broadcast_to(w, e.shape), e)
+    return de + cross(w, e)
 
 
 def perceived_rotation(bearings: npt.ArrayLike, derotated: npt.ArrayLike) -> FloatArray:
@@ -92,7 +108,7 @@ def perceived_rotation(bearings: npt.ArrayLike, derotated: npt.ArrayLike) -> Flo
     e = _as_vectors("bearings", bearings)
     f = _as_vectors("derotated", derotated)
     _check_same_n(bearings=e, derotated=f)
-    return np.cross(f, e)
+    return cross(f, e)
 
 
 @dataclass(frozen=True)
@@ -150,7 +166,7 @@ def owl_quantities(
     rot = np.concatenate([lo[:, None], -w], axis=1) / safe2[:, None]
     ros = 1.0 / norm
     points = e * ros[:, None]
-    heading = (lo[:, None] * e + np.cross(w, e)) / norm[:, None]
+    heading = (lo[:, None] * e + cross(w, e)) / norm[:, None]
     alpha = np.arctan2(np.linalg.norm(w, axis=1), lo)
     nan = ~valid
     rot[nan] = np.nan
@@ -174,9 +190,9 @@ def tangent_basis(bearings: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
     # Pick the axis least aligned with e as the helper, so the cross product never vanishes.
     helper = np.zeros_like(e)
     helper[np.arange(e.shape[0]), np.argmin(np.abs(e), axis=1)] = 1.0
-    u1 = np.cross(helper, e)
+    u1 = cross(helper, e)
     u1 /= np.linalg.norm(u1, axis=1, keepdims=True)
-    u2 = np.cross(e, u1)
+    u2 = cross(e, u1)
     return u1, u2
 
 
@@ -329,20 +345,24 @@ def fit_local_looming(
     scale = np.full(n, noise)
     ok = mask.sum(axis=1) >= min_neighbours
     normal = np.zeros((n, 4, 4))
+    a_flat = a.reshape(n, 2 * k, 4)
+    dv_flat = dv.reshape(n, 2 * k, 1)
     for it in range(iterations + 1):
-        wa = a * weights[:, :, None, None]
-        normal = np.einsum("nkai,nkaj->nij", wa, a) / radius[:, None, None] ** 2
-        rhs = np.einsum("nkai,nka->ni", wa, dv) / radius[:, None] ** 2
+        wa_t = (a_flat * np.repeat(weights, 2, axis=1)[..., None]).transpose(0, 2, 1)
+        normal = (wa_t @ a_flat) / radius[:, None, None] ** 2
+        rhs = (wa_t @ dv_flat)[..., 0] / radius[:, None] ** 2
         good = ok & np.all(np.isfinite(normal), axis=(1, 2))
         safe_normal = np.where(good[:, None, None], normal + ridge, np.eye(4))
         x = np.linalg.solve(safe_normal, rhs[..., None])[..., 0]
-        r = dv - np.einsum("nkai,ni->nka", a, x)
-        resid = np.sqrt(np.einsum("nka,nka->nk", r, r))
+        r = dv - (a_flat @ x[..., None]).reshape(n, k, 2)
+        resid = np.sqrt(r[..., 0] ** 2 + r[..., 1] ** 2)
         if it == iterations:
             break
         # Robust scale: median absolute residual per feature (over its used neighbours).
-        med = np.nanmedian(np.where(mask, resid, np.nan), axis=1)
-        scale = np.maximum(np.nan_to_num(med, nan=noise) * 1.4826, noise)
+        ordered = np.sort(np.where(mask, resid, np.inf), axis=1)  # masked last
+        mid = np.maximum(mask.sum(axis=1) - 1, 0) // 2
+        med = np.take_along_axis(ordered, mid[:, None], axis=1)[:, 0]
+        scale = np.maximum(np.where(np.isfinite(med), med, noise) * 1.4826, noise)
         u = resid / (robust_scale * scale[:, None])
         weights = mask / (1.0 + u * u)
 
@@ -417,7 +437,7 @@ def looming_from_heading(
     if h.shape != (3,) or not np.all(np.isfinite(h)) or np.linalg.norm(h) == 0:
         raise InvalidInputError(f"heading must be a finite non-zero (3,) vector, got {h!r}")
     h = h / np.linalg.norm(h)
-    exh = np.cross(e, h)
+    exh = cross(e, h)
     sin2 = np.einsum("ij,ij->i", exh, exh)
     cos = e @ h
     valid = (sin2 > min_sin * min_sin) & np.all(np.isfinite(w), axis=1)
