@@ -115,6 +115,12 @@ class SimOptions:
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 msg = f"{name} must be a positive integer number of pixels, got {value!r}"
                 raise ScenarioError(msg)
+        if isinstance(self.supersample, bool) or self.supersample not in (1, 2, 3, 4):
+            msg = f"supersample must be an integer in 1..4, got {self.supersample!r}"
+            raise ScenarioError(msg)
+        if not (math.isfinite(self.noise_sigma) and self.noise_sigma >= 0):
+            msg = f"image noise sigma must be finite and >= 0, got {self.noise_sigma!r}"
+            raise ScenarioError(msg)
         if self.scale is not None and not (math.isfinite(self.scale) and self.scale > 0):
             msg = f"scale must be a positive number, got {self.scale!r}"
             raise ScenarioError(msg)
@@ -192,6 +198,10 @@ class Scenario:
     def simulate(self, options: SimOptions | None = None) -> Simulation:
         """The sampled scenario (renderer, IMU) for ``options``."""
         return Simulation(self, options or SimOptions())
+
+    def render_frames(self, options: SimOptions | None = None) -> Iterator[Frame]:
+        """Shortcut for ``simulate(options).frames()`` (use simulate() for the IMU too)."""
+        return self.simulate(options).frames()
 
 
 def _scale_rect(r: Rect, k: float) -> Rect:

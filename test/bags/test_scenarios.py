@@ -43,6 +43,10 @@ def test_listing_and_unknown_name() -> None:
         SimOptions(rate_hz=-1.0)
     with pytest.raises(ScenarioError, match="width"):
         SimOptions(width=0)
+    with pytest.raises(ScenarioError, match="supersample"):
+        SimOptions(supersample=5)
+    frames = list(scenarios.get("still").render_frames(replace(SMALL, seconds=0.1)))
+    assert [f.index for f in frames] == [0, 1]
 
 
 @pytest.mark.parametrize("name", scenarios.names())
