@@ -1,0 +1,152 @@
+"""The two-view baseline on synthetic correspondences with known motion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from owl_core.baseline import (
+    BaselineOptions,
+    TwoViewBaseline,
+    essential_two_view,
+    gyro_two_view,
+)
+from owl_core.camera import CameraModel
+from owl_core.errors import InvalidInputError
+from owl_core.geometry import so3_exp
+from owl_core.tracker import Tracks
+from owl_core.types import PointFlag
+
+FOCAL = 300.0
+
+
+def scene(heading, rotvec, n=150, seed=1, speed=4.0, dt=0.1):
+    """Points in the current frame, their bearings in both frames, exact r/|t|.
+
+    X1 = R X0 + t with t = -heading * speed * dt (the camera moved along heading).
+    """
+    rng = np.random.default_rng(seed)
+    p1 = np.c_[rng.uniform(-4, 4, n), rng.uniform(-3, 3, n), rng.uniform(5, 25, n)]
+    h = np.asarray(heading, dtype=float)
+    h = h / np.linalg.norm(h)
+    rot = so3_exp(np.asarray(rotvec, dtype=float))
+    t = -h * speed * dt
+    p0 = (p1 - t) @ rot  # R^T (X1 - t), row-wise
+    e0 = p0 / np.linalg.norm(p0, axis=1, keepdims=True)
+    e1 = p1 / np.linalg.norm(p1, axis=1, keepdims=True)
+    return e0, e1, rot, h, np.linalg.norm(p1, axis=1) / speed, dt
+
+
+def angle(a, b):
+    return float(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
+
+
+@pytest.mark.parametrize(
+    ("heading", "rotvec"),
+    [((0.2, -0.1, 1.0), (0.01, -0.02, 0.015)), ((1.0, 0.1, 0.3), (0.0, 0.03, 0.0))],
+)
+def test_exact_correspondences_give_exact_motion_and_range(heading, rotvec):
+    e0, e1, rot, h, ros, dt = scene(heading, rotvec)
+    ess = essential_two_view(e0, e1, dt, FOCAL)
+    gyr = gyro_two_view(e0, e1, rot, dt, FOCAL)
+    # exact data: the gyro variant is exact up to the SVD's conditioning (~eps/parallax);
+    # OpenCV's USAC local optimisation stops within ~1e-4 rad (0.006 deg) of the truth
+    for est, tol in ((ess, 1e-4), (gyr, 1e-6)):
+        assert est.heading is not None
+        assert angle(est.heading, h) < tol
+        assert est.inliers.all()
+        np.testing.assert_allclose(est.range_over_speed, ros, rtol=100 * tol)
+    np.testing.assert_allclose(ess.rotation, rot, atol=1e-5)
+
+
+def test_receding_camera_heading_points_backwards():
+    e0, e1, rot, h, ros, dt = scene((0.0, 0.1, -1.0), (0.0, 0.01, 0.0))
+    opts = BaselineOptions(min_parallax_deg=0.0)  # keep the points near the FOE too
+    for est in (
+        essential_two_view(e0, e1, dt, FOCAL, opts),
+        gyro_two_view(e0, e1, rot, dt, FOCAL, opts),
+    ):
+        assert angle(est.heading, h) < 1e-4
+        np.testing.assert_allclose(est.range_over_speed, ros, rtol=1e-2)
+
+
+def test_outliers_are_rejected_and_flagged():
+    e0, e1, rot, h, _, dt = scene((0.3, 0.0, 1.0), (0.0, 0.02, 0.0), n=200)
+    rng = np.random.default_rng(5)
+    bad = rng.choice(200, 40, replace=False)
+    # move the outliers' current bearings by 0.03 rad (9 px) off their epipolar plane
+    e1 = e1.copy()
+    normal = np.cross(e1[bad], h)
+    e1[bad] += 0.03 * normal / np.linalg.norm(normal, axis=1, keepdims=True)
+    e1[bad] /= np.linalg.norm(e1[bad], axis=1, keepdims=True)
+    for est in (essential_two_view(e0, e1, dt, FOCAL), gyro_two_view(e0, e1, rot, dt, FOCAL)):
+        assert angle(est.heading, h) < 1e-4
+        good = np.setdiff1d(np.arange(200), bad)
+        assert est.inliers[good].all()
+        assert not est.inliers[bad].any()
+        assert np.isnan(est.range_over_speed[bad]).all()
+
+
+def test_biased_gyro_tilts_the_gyro_variant_only():
+    e0, e1, rot, h, _, dt = scene((0.1, 0.0, 1.0), (0.0, 0.02, 0.0), n=300)
+    wrong = so3_exp(np.array([0.0, 0.01 * dt, 0.0])) @ rot  # 0.01 rad/s of bias over dt
+    gyr = gyro_two_view(e0, e1, wrong, dt, FOCAL, BaselineOptions(threshold_px=50.0))
+    ess = essential_two_view(e0, e1, dt, FOCAL)
+    assert angle(ess.heading, h) < 1e-6
+    # the leftover rotation masquerades as translation: the heading tilts measurably
+    assert angle(gyr.heading, h) > np.radians(0.5)
+
+
+def test_too_few_points_gives_reason():
+    e0, e1, _, _, _, dt = scene((0, 0, 1), (0, 0, 0), n=6)
+    est = essential_two_view(e0, e1, dt, FOCAL)
+    assert est.heading is None
+    assert "< 8" in est.reason
+    assert np.isnan(est.range_over_speed).all()
+
+
+def test_bad_input_raises_with_shapes():
+    with pytest.raises(InvalidInputError, match=r"\(5, 2\)"):
+        essential_two_view(np.zeros((5, 2)), np.zeros((5, 2)), 0.1, FOCAL)
+    with pytest.raises(InvalidInputError, match="interval_s"):
+        gyro_two_view(np.ones((9, 3)), np.ones((9, 3)), np.eye(3), 0.0, FOCAL)
+    with pytest.raises(InvalidInputError, match="method"):
+        BaselineOptions(method="eight-point")
+
+
+def test_on_tracks_uses_the_frame_gap_frames_earlier():
+    cam = CameraModel.pinhole(320, 240, FOCAL, FOCAL, 159.5, 119.5)
+    rng = np.random.default_rng(3)
+    n = 120
+    pw = np.c_[rng.uniform(-3, 3, n), rng.uniform(-2, 2, n), rng.uniform(6, 20, n)]
+    v = np.array([0.3, 0.0, 3.0])  # m/s, camera frame, no rotation
+    stamps = 1_000_000_000 + np.arange(6)[::-1] * 33_333_333  # newest first
+    t_rel = (stamps - stamps[0]) * 1e-9  # <= 0
+    hist = np.stack([cam.bearing_to_pixel(pw - v * tau) for tau in t_rel], axis=1)
+    hist[:10, 3:] = np.nan  # ten young tracks do not reach the older view
+    tracks = Tracks(
+        ids=np.arange(n, dtype=np.uint32),
+        pixels=hist[:, 0].copy(),
+        ages=np.full(n, 5, dtype=np.int32),
+        history=hist,
+        stamps_ns=stamps.astype(np.int64),
+    )
+    calls = []
+
+    def rotation(t0, t1):
+        calls.append((t0, t1))
+        return np.eye(3)
+
+    for method in ("essential", "gyro"):
+        opts = BaselineOptions(method=method, gap_frames=3, min_parallax_deg=0.0)
+        base = TwoViewBaseline(cam, opts, rotation)
+        out = base.process(tracks)
+        assert out.interval_s == pytest.approx(3 * 0.033333333)
+        assert angle(out.heading, v) < 1e-4  # pixels carry float rounding only
+        assert out.ids.tolist() == list(range(10, n))
+        ros_true = np.linalg.norm(pw[10:], axis=1) / np.linalg.norm(v)
+        np.testing.assert_allclose(out.range_over_speed, ros_true, rtol=1e-2)
+        assert not (out.flags & PointFlag.MOVING).any()
+    assert calls == [(int(stamps[3]), int(stamps[0]))]
+    with pytest.raises(InvalidInputError, match="rotation provider"):
+        TwoViewBaseline(cam, BaselineOptions(method="gyro"))
