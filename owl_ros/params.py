@@ -1,0 +1,632 @@
+"""The parameters of node ``owl`` (and the options of ``owl_process``), in one table.
+
+``PARAMS`` lists every parameter once: name, type, default, unit/meaning, valid range and
+whether a change needs a restart (``read_only``). Everything else follows from it:
+
+- the node declares each with a ``ParameterDescriptor`` (:func:`descriptor`: ranges as
+  ``FloatingPointRange`` / ``IntegerRange``, ``read_only``, choices in
+  ``additional_constraints``);
+- :func:`validate` checks a set of values and returns one line per bad value, naming the
+  parameter and the value (negative counts, NaN, a wrong array length...);
+- :func:`build_options` turns valid values into one frozen :class:`NodeOptions` holding the
+  engine's :class:`~owl_core.engine.EngineOptions` and the node's own settings;
+- ``owl_process`` accepts the same names (``-p NAME:=VALUE``, ``--params-file``).
+
+Engine parameters may change at runtime (the engine is rebuilt, its tracks reset); the
+read-only ones shape subscriptions and queues and are fixed at start.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+from owl_core.engine import EngineOptions
+from owl_core.errors import OwlError
+from owl_core.tracker import TrackerOptions
+
+__all__ = [
+    "PARAMS",
+    "NodeOptions",
+    "Param",
+    "ParameterError",
+    "build_options",
+    "defaults",
+    "descriptor",
+    "parse_value",
+    "validate",
+]
+
+#: Parameter kinds (ROS parameter types) used in the table.
+KINDS = ("bool", "int", "double", "string", "double_array")
+
+
+class ParameterError(ValueError):
+    """One or more parameter values are invalid; ``lines`` holds one line per problem."""
+
+    def __init__(self, lines: Iterable[str]) -> None:
+        self.lines = tuple(lines)
+        super().__init__("; ".join(self.lines))
+
+
+@dataclass(frozen=True)
+class Param:
+    """One row of the parameter table.
+
+    Attributes:
+        name: ROS parameter name (also the ``owl_process -p`` name).
+        kind: one of KINDS.
+        default: default value (a tuple for double_array).
+        description: meaning and unit, one sentence.
+        low, high: inclusive valid range for int/double (None = unbounded on that side).
+        read_only: True when a change needs a restart (refused at runtime).
+        choices: allowed values of a string parameter.
+        length: required length of a double_array.
+        engine: the EngineOptions field it sets ("tracker.<field>" for TrackerOptions), or
+            None for node settings (NodeOptions field of the same name).
+    """
+
+    name: str
+    kind: str
+    default: Any
+    description: str
+    low: float | None = None
+    high: float | None = None
+    read_only: bool = False
+    choices: tuple[str, ...] = ()
+    length: int | None = None
+    engine: str | None = None
+
+    def constraint_text(self) -> str:
+        """The valid range as text (used in descriptors, the YAML file and errors)."""
+        if self.choices:
+            return "one of " + ", ".join(self.choices)
+        if self.length is not None:
+            return f"{self.length} finite numbers"
+        if self.kind in ("int", "double"):
+            lo = "-inf" if self.low is None else f"{self.low:g}"
+            hi = "inf" if self.high is None else f"{self.high:g}"
+            return f"[{lo}, {hi}]"
+        return ""
+
+
+_E = EngineOptions()
+_T = TrackerOptions()
+
+#: Every parameter of node ``owl``, in declaration order.
+PARAMS: tuple[Param, ...] = (
+    # ---- inputs and scheduling (node settings) ---------------------------------------------
+    Param(
+        "image_transport",
+        "string",
+        "raw",
+        "subscribe to 'image' (sensor_msgs/Image, raw) or 'image/compressed' "
+        "(sensor_msgs/CompressedImage, compressed)",
+        read_only=True,
+        choices=("raw", "compressed"),
+    ),
+    Param(
+        "queue_size",
+        "int",
+        2,
+        "images waiting for processing, count; when full the oldest is dropped (newest wins)",
+        low=1,
+        high=100,
+        read_only=True,
+    ),
+    Param(
+        "imu_wait_s",
+        "double",
+        0.1,
+        "longest wait for IMU samples covering a frame's interval before it is processed "
+        "with what exists (and flagged), s",
+        low=0.0,
+        high=5.0,
+    ),
+    Param(
+        "significant_bits",
+        "int",
+        16,
+        "significant bits of mono16 images (e.g. 12 for a 12-bit sensor), scaled to 8 bits",
+        low=1,
+        high=16,
+    ),
+    Param(
+        "speed_source",
+        "string",
+        "none",
+        "metric scale: 'none' (x y z in seconds), 'odometry' (nav_msgs/Odometry) or 'twist' "
+        "(geometry_msgs/TwistStamped) on speed_topic (x y z in metres)",
+        read_only=True,
+        choices=("none", "odometry", "twist"),
+    ),
+    Param(
+        "speed_topic",
+        "string",
+        "odom",
+        "topic of the speed source (relative names are remappable)",
+        read_only=True,
+    ),
+    Param(
+        "speed_max_age_s",
+        "double",
+        0.2,
+        "a speed message farther than this from the image stamp is not used, s",
+        low=0.0,
+        high=10.0,
+    ),
+    Param(
+        "min_speed",
+        "double",
+        0.05,
+        "below this speed the cloud stays in seconds (scale unobservable), m/s",
+        low=0.0,
+        high=1000.0,
+    ),
+    Param(
+        "publish_debug_image",
+        "bool",
+        True,
+        "offer owl/debug_image (tracks and heading mark; built only while subscribed)",
+    ),
+    Param(
+        "diagnostics_period_s",
+        "double",
+        1.0,
+        "period of /diagnostics, s",
+        low=0.05,
+        high=60.0,
+    ),
+    # ---- camera-IMU extrinsic and timing (contract) ----------------------------------------
+    Param(
+        "camera_to_imu_rotation_xyzw",
+        "double_array",
+        tuple(float(v) for v in _E.camera_to_imu_rotation_xyzw),
+        "rotation taking camera-optical-frame vectors into the IMU frame (TF rotation "
+        "IMU -> camera optical frame), quaternion x y z w",
+        length=4,
+        engine="camera_to_imu_rotation_xyzw",
+    ),
+    Param(
+        "imu_time_offset",
+        "double",
+        _E.imu_time_offset_s,
+        "IMU stamp minus camera stamp for simultaneous events, s",
+        low=-1.0,
+        high=1.0,
+        engine="imu_time_offset_s",
+    ),
+    Param(
+        "require_gyro",
+        "bool",
+        _E.require_gyro,
+        "true: frames without IMU coverage give no points; false: processed without "
+        "derotation, every point flagged NO_GYRO (16)",
+        engine="require_gyro",
+    ),
+    # ---- engine ----------------------------------------------------------------------------
+    Param(
+        "max_features",
+        "int",
+        _E.max_features,
+        "features tracked, count",
+        low=1,
+        high=20000,
+        engine="max_features",
+    ),
+    Param(
+        "fit_frames",
+        "int",
+        _E.fit_frames,
+        "frames per track in the bearing-vs-time fit, count",
+        low=2,
+        high=30,
+        engine="fit_frames",
+    ),
+    Param(
+        "fit_order",
+        "int",
+        _E.fit_order,
+        "order of that fit: 1 straight line, 2 quadratic",
+        low=1,
+        high=2,
+        engine="fit_order",
+    ),
+    Param(
+        "min_track_frames",
+        "int",
+        _E.min_track_frames,
+        "tracks seen in fewer frames give no point, count (<= fit_frames)",
+        low=2,
+        high=30,
+        engine="min_track_frames",
+    ),
+    Param(
+        "pixel_noise_px",
+        "double",
+        _E.pixel_noise_px,
+        "1-sigma tracking noise per image axis, px",
+        low=1e-4,
+        high=100.0,
+        engine="pixel_noise_px",
+    ),
+    Param(
+        "neighbours",
+        "int",
+        _E.neighbours,
+        "image neighbours of the local looming rule, count",
+        low=3,
+        high=200,
+        engine="neighbours",
+    ),
+    Param(
+        "min_neighbours",
+        "int",
+        _E.min_neighbours,
+        "fewer usable neighbours -> no L from the local rule, count (<= neighbours)",
+        low=3,
+        high=200,
+        engine="min_neighbours",
+    ),
+    Param(
+        "neighbour_radius_px",
+        "double",
+        _E.neighbour_radius_px,
+        "neighbours farther than this are not used, px",
+        low=1.0,
+        high=10000.0,
+        engine="neighbour_radius_px",
+    ),
+    Param(
+        "min_quality",
+        "double",
+        _E.min_quality,
+        "points below this quality are flagged LOW_QUALITY (8), 0..1",
+        low=0.0,
+        high=1.0,
+        engine="min_quality",
+    ),
+    Param(
+        "moving_sigma",
+        "double",
+        _E.moving_sigma,
+        "a point disagreeing with the heading by more than this many sigmas is flagged MOVING (4)",
+        low=0.1,
+        high=100.0,
+        engine="moving_sigma",
+    ),
+    Param(
+        "estimate_bias",
+        "bool",
+        _E.estimate_bias,
+        "estimate the gyro bias from the flow, jointly with the heading",
+        engine="estimate_bias",
+    ),
+    Param(
+        "initial_bias_imu",
+        "double_array",
+        tuple(float(v) for v in _E.initial_bias_imu),
+        "initial gyro bias, IMU frame, rad/s (x y z)",
+        length=3,
+        engine="initial_bias_imu",
+    ),
+    Param(
+        "bias_initial_sigma",
+        "double",
+        _E.bias_initial_sigma,
+        "1-sigma of the initial bias per axis, rad/s",
+        low=1e-9,
+        high=10.0,
+        engine="bias_initial_sigma",
+    ),
+    Param(
+        "bias_random_walk",
+        "double",
+        _E.bias_random_walk,
+        "gyro bias random walk, rad/s/sqrt(s)",
+        low=0.0,
+        high=10.0,
+        engine="bias_random_walk",
+    ),
+    Param(
+        "gyro_noise_density",
+        "double",
+        _E.gyro_noise_density,
+        "gyro white-noise density, rad/s/sqrt(Hz)",
+        low=1e-9,
+        high=10.0,
+        engine="gyro_noise_density",
+    ),
+    Param(
+        "max_frame_gap_s",
+        "double",
+        _E.max_frame_gap_s,
+        "a longer gap between frames resets the tracks, s",
+        low=1e-3,
+        high=60.0,
+        engine="max_frame_gap_s",
+    ),
+    Param(
+        "seed",
+        "int",
+        _E.seed,
+        "seed of the RANSAC random generator (results are deterministic)",
+        low=0,
+        high=2**31 - 1,
+        engine="seed",
+    ),
+    # ---- tracker ---------------------------------------------------------------------------
+    Param(
+        "tracker_min_distance_px",
+        "double",
+        _T.min_distance_px,
+        "minimum distance between a new corner and any feature, px",
+        low=0.0,
+        high=1000.0,
+        engine="tracker.min_distance_px",
+    ),
+    Param(
+        "tracker_fb_threshold_px",
+        "double",
+        _T.fb_threshold_px,
+        "largest forward-backward tracking round-trip error, px",
+        low=1e-3,
+        high=100.0,
+        engine="tracker.fb_threshold_px",
+    ),
+    Param(
+        "tracker_lk_window_px",
+        "int",
+        _T.lk_window_px,
+        "Lucas-Kanade window side, px (odd)",
+        low=5,
+        high=101,
+        engine="tracker.lk_window_px",
+    ),
+    Param(
+        "tracker_lk_levels",
+        "int",
+        _T.lk_levels,
+        "pyramid levels above the full image",
+        low=0,
+        high=8,
+        engine="tracker.lk_levels",
+    ),
+)
+
+_BY_NAME: dict[str, Param] = {p.name: p for p in PARAMS}
+
+
+@dataclass(frozen=True)
+class NodeOptions:
+    """Everything node ``owl`` and ``owl_process`` need, read once from the parameters.
+
+    Attributes:
+        engine: the engine's options (extrinsic, time offset, require_gyro, tracking...).
+        image_transport: "raw" or "compressed".
+        queue_size: frames waiting for processing, count (newest wins when full).
+        imu_wait_s: bounded wait for IMU coverage of a frame, s.
+        significant_bits: significant bits of mono16 images.
+        speed_source: "none", "odometry" or "twist".
+        speed_topic: topic of the speed source.
+        speed_max_age_s: largest |speed stamp - image stamp| used, s.
+        min_speed: below this the cloud stays in seconds, m/s.
+        publish_debug_image: offer owl/debug_image.
+        diagnostics_period_s: period of /diagnostics, s.
+    """
+
+    engine: EngineOptions = field(default_factory=EngineOptions)
+    image_transport: str = "raw"
+    queue_size: int = 2
+    imu_wait_s: float = 0.1
+    significant_bits: int = 16
+    speed_source: str = "none"
+    speed_topic: str = "odom"
+    speed_max_age_s: float = 0.2
+    min_speed: float = 0.05
+    publish_debug_image: bool = True
+    diagnostics_period_s: float = 1.0
+
+    def with_values(self, values: Mapping[str, Any]) -> NodeOptions:
+        """These options with some parameters changed (validated; ParameterError)."""
+        return build_options({**to_values(self), **values})
+
+
+def defaults() -> dict[str, Any]:
+    """Parameter name -> default value."""
+    return {p.name: p.default for p in PARAMS}
+
+
+def _check(p: Param, value: Any) -> str | None:
+    """One line describing why ``value`` is invalid for ``p``, or None."""
+    if p.kind == "bool":
+        return None if isinstance(value, bool) else f"must be true or false, got {value!r}"
+    if p.kind == "string":
+        if not isinstance(value, str):
+            return f"must be a string, got {value!r}"
+        if p.choices and value not in p.choices:
+            return f"must be one of {', '.join(p.choices)}, got {value!r}"
+        if not p.choices and not value.strip():
+            return "must not be empty"
+        return None
+    if p.kind == "double_array":
+        if isinstance(value, str | bytes) or not isinstance(value, Iterable):
+            return f"must be a list of {p.length} numbers, got {value!r}"
+        items = list(value)
+        if p.length is not None and len(items) != p.length:
+            return f"must have {p.length} elements, got {len(items)}: {items!r}"
+        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in items):
+            return f"must hold numbers, got {items!r}"
+        if not all(math.isfinite(v) for v in items):
+            return f"must hold finite numbers, got {items!r}"
+        return None
+    if p.kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            return f"must be an integer, got {value!r}"
+    elif isinstance(value, bool) or not isinstance(value, int | float):
+        return f"must be a number, got {value!r}"
+    elif not math.isfinite(value):
+        return f"must be finite, got {value!r}"
+    if (p.low is not None and value < p.low) or (p.high is not None and value > p.high):
+        return f"must be in {p.constraint_text()}, got {value!r}"
+    return None
+
+
+def validate(values: Mapping[str, Any], *, unknown_ok: bool = False) -> list[str]:
+    """Check parameter values (each alone, then together).
+
+    Args:
+        values: parameter name -> value (missing names take their default).
+        unknown_ok: ignore names that are not in the table (e.g. ``use_sim_time``).
+
+    Returns:
+        One line per problem: ``"parameter NAME: must ..., got VALUE"``; empty when valid.
+    """
+    lines = []
+    for name, value in values.items():
+        p = _BY_NAME.get(name)
+        if p is None:
+            if not unknown_ok:
+                lines.append(f"parameter {name}: unknown parameter")
+            continue
+        why = _check(p, value)
+        if why is not None:
+            lines.append(f"parameter {name}: {why}")
+    quat = values.get("camera_to_imu_rotation_xyzw")
+    if quat is not None and not lines:
+        norm = math.sqrt(sum(float(v) ** 2 for v in quat))
+        if abs(norm - 1.0) > 1e-2:
+            lines.append(
+                f"parameter camera_to_imu_rotation_xyzw: must be a unit quaternion, got "
+                f"{list(quat)!r} (norm {norm:.6g})"
+            )
+    if lines:
+        return lines
+    try:
+        _build({**defaults(), **{k: v for k, v in values.items() if k in _BY_NAME}})
+    except (OwlError, ValueError) as err:
+        lines.append(_relate(str(err)))
+    return lines
+
+
+def _relate(message: str) -> str:
+    """Name the parameter in an EngineOptions/TrackerOptions error message."""
+    found = [
+        (message.find(p.engine.split(".")[-1]), p.name)
+        for p in PARAMS
+        if p.engine is not None and p.engine.split(".")[-1] in message
+    ]
+    if found:
+        return f"parameter {min(found)[1]}: {message}"
+    return f"parameters: {message}"
+
+
+def _engine_options(values: Mapping[str, Any]) -> EngineOptions:
+    engine: dict[str, Any] = {}
+    tracker: dict[str, Any] = {}
+    for p in PARAMS:
+        if p.engine is None:
+            continue
+        value = values[p.name]
+        if p.kind == "double_array":
+            value = tuple(float(v) for v in value)
+        elif p.kind == "double":
+            value = float(value)
+        if p.engine.startswith("tracker."):
+            tracker[p.engine.split(".", 1)[1]] = value
+        else:
+            engine[p.engine] = value
+    return EngineOptions(**engine, tracker=replace(TrackerOptions(), **tracker))
+
+
+def _build(values: Mapping[str, Any]) -> NodeOptions:
+    node_fields = {f.name for f in fields(NodeOptions)} - {"engine"}
+    node: dict[str, Any] = {}
+    for name in node_fields:
+        value = values[name]
+        node[name] = float(value) if _BY_NAME[name].kind == "double" else value
+    return NodeOptions(engine=_engine_options(values), **node)
+
+
+def build_options(values: Mapping[str, Any] | None = None) -> NodeOptions:
+    """Validated values -> NodeOptions (missing names take their default).
+
+    Raises:
+        ParameterError: with one line per bad value (see :func:`validate`).
+    """
+    given = dict(values or {})
+    lines = validate(given, unknown_ok=True)
+    if lines:
+        raise ParameterError(lines)
+    return _build({**defaults(), **{k: v for k, v in given.items() if k in _BY_NAME}})
+
+
+def to_values(options: NodeOptions) -> dict[str, Any]:
+    """NodeOptions -> parameter name -> value (inverse of :func:`build_options`)."""
+    out: dict[str, Any] = {}
+    for p in PARAMS:
+        if p.engine is None:
+            out[p.name] = getattr(options, p.name)
+        elif p.engine.startswith("tracker."):
+            out[p.name] = getattr(options.engine.tracker, p.engine.split(".", 1)[1])
+        else:
+            value = getattr(options.engine, p.engine)
+            out[p.name] = tuple(value) if p.kind == "double_array" else value
+    return out
+
+
+def parse_value(name: str, text: str) -> Any:
+    """A command-line value (``owl_process -p NAME:=TEXT``) as the parameter's type.
+
+    YAML syntax as ``ros2 param set`` uses it: ``true``, ``5``, ``0.5``, ``[0, 0, 0, 1]``;
+    ints are accepted for doubles. Raises ParameterError naming the parameter and text.
+    """
+    import yaml
+
+    p = _BY_NAME.get(name)
+    if p is None:
+        raise ParameterError([f"parameter {name}: unknown parameter"])
+    if p.kind == "string":
+        return text
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError:
+        raise ParameterError([f"parameter {name}: cannot parse {text!r}"]) from None
+    if p.kind == "double" and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if p.kind == "double" and isinstance(value, str) and value.lower() in ("nan", ".nan"):
+        value = math.nan
+    if p.kind == "double_array" and isinstance(value, list):
+        value = [float(v) if isinstance(v, int) and not isinstance(v, bool) else v for v in value]
+    return value
+
+
+def descriptor(p: Param) -> Any:
+    """rcl_interfaces/ParameterDescriptor of ``p`` (ranges, read_only, constraints text)."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
+    desc = ParameterDescriptor(
+        name=p.name,
+        description=p.description,
+        read_only=p.read_only,
+        additional_constraints=p.constraint_text(),
+    )
+    if p.kind == "int" and (p.low is not None or p.high is not None):
+        desc.integer_range = [
+            IntegerRange(
+                from_value=int(p.low if p.low is not None else -(2**63)),
+                to_value=int(p.high if p.high is not None else 2**63 - 1),
+                step=1,
+            )
+        ]
+    elif p.kind == "double" and (p.low is not None or p.high is not None):
+        desc.floating_point_range = [
+            FloatingPointRange(
+                from_value=float(p.low if p.low is not None else -1e300),
+                to_value=float(p.high if p.high is not None else 1e300),
+                step=0.0,
+            )
+        ]
+    return desc

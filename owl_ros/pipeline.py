@@ -1,0 +1,713 @@
+"""The message -> engine -> message path shared by node ``owl`` and ``owl_process``.
+
+No DDS here: the caller hands in ROS messages (rclpy classes) with the time they arrived
+on its own clock (the node: monotonic wall time; ``owl_process``: the bag's log time), and
+gets back what to publish. Everything that touches the engine runs in one thread (the
+node's worker); :class:`Inbox` is the thread-safe hand-over from the subscription
+callbacks, which never block.
+
+What :class:`Pipeline` does per input:
+
+- ``camera_info``: converted once per distinct calibration; an invalid one (zero focal
+  length, unknown distortion model) is reported and frames are skipped until a valid one
+  arrives; a changed calibration rebuilds the engine.
+- ``imu``: samples with NaN/inf rates, duplicate or out-of-order stamps are dropped and
+  counted; a stamp more than ``max_frame_gap_s`` older than the newest one is a backwards
+  time jump (bag loop, sim clock restart): the engine is reset and a diagnostic says so.
+  A ring buffer of the last seconds of good samples re-feeds a rebuilt engine.
+- ``image`` / ``image/compressed``: queued (at most ``queue_size``; when full the oldest
+  is dropped and counted: the newest frame wins). A queued frame is processed once the IMU
+  covers the interval since the previous frame, or after ``imu_wait_s`` (then the engine
+  flags or skips it, per ``require_gyro``), or at once when the IMU already passed its
+  stamp with a gap or has gone silent. A bad image (unknown encoding, step too small,
+  wrong data length, size differing from camera_info) is skipped with a reason naming the
+  field and value; a stamp going backwards resets the engine.
+- speed (``nav_msgs/Odometry`` or ``geometry_msgs/TwistStamped``): the speed nearest the
+  image stamp (within ``speed_max_age_s``, at least ``min_speed``) scales x y z to metres
+  and the cloud's ``speed`` field says so (``msg_adapters.pointcloud``).
+
+Every processed frame gives one ``owl/points`` cloud (empty when the frame produced no
+points; the reason is in diagnostics) with the input image's header, and an
+``owl/heading`` when the frame gave a heading.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from msg_adapters.camera_info import camera_info_to_model
+from msg_adapters.diagnostics import Level, StatusRecord
+from msg_adapters.heading import heading_to_msg
+from msg_adapters.image import compressed_to_frame, image_to_frame
+from msg_adapters.imu import imu_to_gyro
+from msg_adapters.pointcloud import frame_result_to_cloud
+from msg_adapters.stamps import header_to_ns
+from owl_core.camera import CameraModel
+from owl_core.engine import OwlEngine
+from owl_core.errors import OwlError
+from owl_core.types import FrameResult, GyroSamples, PointFlag
+from owl_ros.params import NodeOptions
+
+__all__ = ["Inbox", "Output", "Pipeline", "draw_debug"]
+
+#: IMU considered silent (no waiting for it) when nothing arrived for this long, ns.
+IMU_SILENT_NS = 1_000_000_000
+#: seconds of good IMU samples kept to re-feed a rebuilt engine.
+IMU_RING_S = 2.0
+#: speed messages kept.
+SPEED_KEEP = 400
+#: name prefix of the diagnostic statuses.
+DIAG_PREFIX = "owl"
+
+
+@dataclass(frozen=True)
+class Output:
+    """What one processed frame publishes.
+
+    Attributes:
+        result: the engine's FrameResult.
+        cloud: sensor_msgs/PointCloud2 for owl/points (header = the image's header).
+        heading: geometry_msgs/Vector3Stamped for owl/heading, or None (no heading).
+        image: (H, W) uint8 grey image the engine tracked on (for owl/debug_image).
+        header: the input image's std_msgs/Header.
+        speed: m/s used to scale x y z to metres, or None (cloud in seconds).
+        arrival_ns: when the image arrived, on the caller's clock, ns.
+    """
+
+    result: FrameResult
+    cloud: Any
+    heading: Any | None
+    image: npt.NDArray[np.uint8]
+    header: Any
+    speed: float | None
+    arrival_ns: int
+
+
+@dataclass
+class _Pending:
+    msg: Any
+    arrival_ns: int
+
+
+@dataclass
+class _Window:
+    """Counts and samples since the last diagnostics report."""
+
+    start_ns: int | None = None
+    counts: collections.Counter[str] = field(default_factory=collections.Counter)
+    process_s: list[float] = field(default_factory=list)
+    latency_s: list[float] = field(default_factory=list)
+    stamp_latency_s: list[float] = field(default_factory=list)
+    points: list[int] = field(default_factory=list)
+
+
+class Inbox:
+    """Thread-safe hand-over from subscription callbacks to the worker (never blocks long).
+
+    Images are kept in a bounded deque (``image_capacity``; the oldest is dropped when
+    full and counted in ``dropped_images``); IMU, camera_info and speed messages in deques
+    bounded generously (``other_capacity``) so memory stays bounded even if the worker
+    stalls. ``wait`` lets the worker sleep until something arrives.
+    """
+
+    def __init__(self, image_capacity: int, other_capacity: int = 20000) -> None:
+        self._lock = threading.Lock()
+        self._event = threading.Event()
+        self._images: collections.deque[tuple[Any, int]] = collections.deque(maxlen=image_capacity)
+        self._other: collections.deque[tuple[str, Any, int]] = collections.deque(
+            maxlen=other_capacity
+        )
+        self.dropped_images = 0
+        self.dropped_other = 0
+
+    def put_image(self, msg: Any, arrival_ns: int) -> None:
+        """Store an image (newest wins when full)."""
+        with self._lock:
+            if len(self._images) == self._images.maxlen:
+                self.dropped_images += 1
+            self._images.append((msg, arrival_ns))
+        self._event.set()
+
+    def put(self, kind: str, msg: Any, arrival_ns: int) -> None:
+        """Store a non-image message: kind is "imu", "camera_info", "speed" or "options"."""
+        with self._lock:
+            if len(self._other) == self._other.maxlen:
+                self.dropped_other += 1
+            self._other.append((kind, msg, arrival_ns))
+        self._event.set()
+
+    def wait(self, timeout_s: float) -> None:
+        """Sleep until something is put or ``timeout_s`` passes."""
+        self._event.wait(timeout_s)
+        self._event.clear()
+
+    def wake(self) -> None:
+        """Wake a waiting worker (e.g. to stop it)."""
+        self._event.set()
+
+    def drain(self) -> tuple[list[tuple[str, Any, int]], list[tuple[Any, int]], int]:
+        """(other messages in arrival order, images in arrival order, images dropped since
+        the last drain)."""
+        with self._lock:
+            other = list(self._other)
+            images = list(self._images)
+            self._other.clear()
+            self._images.clear()
+            dropped, self.dropped_images = self.dropped_images, 0
+        return other, images, dropped
+
+
+def _speed_of(msg: Any) -> tuple[int, float]:
+    """(stamp ns, |linear velocity| m/s) of a nav_msgs/Odometry or TwistStamped."""
+    twist = msg.twist.twist if hasattr(msg, "pose") else msg.twist
+    v = twist.linear
+    return header_to_ns(msg.header), math.sqrt(v.x * v.x + v.y * v.y + v.z * v.z)
+
+
+def _percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values), q)) if values else math.nan
+
+
+class Pipeline:
+    """Messages in, FrameResults and output messages out (see the module docstring).
+
+    Args:
+        options: node options (engine options included).
+    """
+
+    def __init__(self, options: NodeOptions | None = None) -> None:
+        self.options = options if options is not None else NodeOptions()
+        self._engine: OwlEngine | None = None
+        self._camera: CameraModel | None = None
+        self._camera_key: tuple[Any, ...] | None = None
+        self._camera_error: str | None = None
+        self._pending: collections.deque[_Pending] = collections.deque()
+        self._ring: collections.deque[tuple[int, tuple[float, float, float]]] = collections.deque()
+        self._newest_imu_ns: int | None = None
+        self._imu_arrival_ns: int | None = None
+        self._last_stamp: int | None = None
+        self._speeds: collections.deque[tuple[int, float]] = collections.deque(maxlen=SPEED_KEEP)
+        #: totals since start, by key (see diagnostics()).
+        self.totals: collections.Counter[str] = collections.Counter()
+        self._window = _Window()
+        self._last_empty_reason = ""
+        self._last_bad_image = ""
+        self._last_imu_problem = ""
+        self._last_jump = ""
+        self._qos_events: list[str] = []
+        self._last_result: FrameResult | None = None
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def engine(self) -> OwlEngine | None:
+        """The engine (None until a valid camera_info arrived)."""
+        return self._engine
+
+    @property
+    def camera(self) -> CameraModel | None:
+        """The camera model from the last valid camera_info, or None."""
+        return self._camera
+
+    @property
+    def pending(self) -> int:
+        """Frames waiting for processing."""
+        return len(self._pending)
+
+    def _count(self, key: str, n: int = 1) -> None:
+        self.totals[key] += n
+        self._window.counts[key] += n
+
+    def _rebuild_engine(self) -> None:
+        if self._camera is None:
+            self._engine = None
+            return
+        self._engine = OwlEngine(self._camera, self.options.engine)
+        if self._ring:
+            stamps = np.fromiter((s for s, _ in self._ring), dtype=np.int64, count=len(self._ring))
+            rates = np.array([w for _, w in self._ring], dtype=np.float64).reshape(-1, 3)
+            self._engine.add_gyro(GyroSamples(stamp_ns=stamps, angular_velocity=rates))
+        self._last_stamp = None
+
+    def reconfigure(self, options: NodeOptions) -> None:
+        """New options (already validated); a change of engine options rebuilds the engine
+        (tracks reset, IMU history kept)."""
+        old = self.options
+        self.options = options
+        if options.engine != old.engine:
+            self._rebuild_engine()
+            self._count("reconfigured")
+        while len(self._pending) > options.queue_size:
+            self._pending.popleft()
+            self._count("dropped_queue_full")
+
+    def _time_jump(self, what: str, stale_after_ns: int | None = None) -> None:
+        """Backwards time jump: reset everything that holds time; queued frames stamped
+        after ``stale_after_ns`` (from before the jump) are dropped."""
+        self._last_jump = what
+        self._count("time_jumps")
+        self._ring.clear()
+        self._newest_imu_ns = None
+        self._last_stamp = None
+        self._speeds.clear()
+        if stale_after_ns is not None:
+            keep = collections.deque(
+                p for p in self._pending if self._stamp_or_zero(p.msg) <= stale_after_ns
+            )
+            dropped = len(self._pending) - len(keep)
+            if dropped:
+                self._count("dropped_time_jump", dropped)
+            self._pending = keep
+        if self._engine is not None:
+            self._engine.reset()
+
+    def note_qos_event(self, text: str) -> None:
+        """Record a QoS problem (e.g. an incompatible publisher/subscriber) for diagnostics."""
+        self._count("qos_events")
+        self._qos_events.append(text)
+        del self._qos_events[:-5]
+
+    # ------------------------------------------------------------------ inputs
+
+    def add_camera_info(self, msg: Any) -> None:
+        """A sensor_msgs/CameraInfo (converted once per distinct calibration)."""
+        self._count("camera_info")
+        key = (
+            int(msg.width),
+            int(msg.height),
+            str(msg.distortion_model),
+            tuple(float(v) for v in msg.k),
+            tuple(float(v) for v in msg.d),
+            int(msg.binning_x),
+            int(msg.binning_y),
+            int(msg.roi.x_offset),
+            int(msg.roi.y_offset),
+            int(msg.roi.width),
+            int(msg.roi.height),
+        )
+        if key == self._camera_key:
+            return
+        self._camera_key = key
+        try:
+            model = camera_info_to_model(msg)
+        except (ValueError, OwlError) as err:
+            self._camera_error = str(err)
+            self._count("bad_camera_info")
+            self._camera = None
+            self._engine = None
+            return
+        self._camera_error = None
+        if model != self._camera:
+            if self._camera is not None:
+                self._count("camera_changed")
+            self._camera = model
+            self._rebuild_engine()
+
+    def add_imu(self, msg: Any, arrival_ns: int) -> None:
+        """A sensor_msgs/Imu (REP 145; only angular_velocity is used)."""
+        self._count("imu")
+        self._imu_arrival_ns = arrival_ns
+        try:
+            samples = imu_to_gyro(msg)
+        except ValueError as err:
+            self._count("imu_invalid")
+            self._last_imu_problem = str(err)
+            return
+        stamp = int(samples.stamp_ns[0])
+        rate = samples.angular_velocity[0]
+        if not np.all(np.isfinite(rate)):
+            self._count("imu_non_finite")
+            self._last_imu_problem = f"imu.angular_velocity not finite: {rate.tolist()}"
+            return
+        newest = self._newest_imu_ns
+        if newest is not None and stamp <= newest:
+            jump_ns = round(self.options.engine.max_frame_gap_s * 1e9)
+            if stamp < newest - jump_ns:
+                self._time_jump(
+                    f"IMU stamp went back {(newest - stamp) * 1e-9:.3f} s ({stamp} ns after "
+                    f"{newest} ns): engine reset",
+                    stale_after_ns=stamp + jump_ns,
+                )
+            else:
+                key = "imu_duplicate" if stamp == newest else "imu_out_of_order"
+                self._count(key)
+                self._last_imu_problem = f"imu stamp {stamp} ns not after {newest} ns ({key[4:]})"
+                return
+        self._newest_imu_ns = stamp
+        self._ring.append((stamp, (float(rate[0]), float(rate[1]), float(rate[2]))))
+        horizon = stamp - round(IMU_RING_S * 1e9)
+        while self._ring and self._ring[0][0] < horizon:
+            self._ring.popleft()
+        if self._engine is not None:
+            self._engine.add_gyro(samples)
+
+    def add_speed(self, msg: Any) -> None:
+        """A nav_msgs/Odometry or geometry_msgs/TwistStamped (speed = |linear velocity|)."""
+        self._count("speed")
+        try:
+            stamp, speed = _speed_of(msg)
+        except ValueError:
+            self._count("speed_invalid")
+            return
+        if not math.isfinite(speed):
+            self._count("speed_invalid")
+            return
+        self._speeds.append((stamp, speed))
+
+    def add_image(self, msg: Any, arrival_ns: int) -> None:
+        """A sensor_msgs/Image or CompressedImage; queued (newest wins when full)."""
+        self._count("images")
+        if len(self._pending) >= self.options.queue_size:
+            self._pending.popleft()
+            self._count("dropped_queue_full")
+        self._pending.append(_Pending(msg, arrival_ns))
+
+    def count_dropped(self, n: int) -> None:
+        """Images dropped before they reached the pipeline (the node's inbox was full)."""
+        if n:
+            self.totals["images"] += n
+            self._window.counts["images"] += n
+            self._count("dropped_queue_full", n)
+
+    # ------------------------------------------------------------------ processing
+
+    def _imu_live(self, now_ns: int) -> bool:
+        return self._imu_arrival_ns is not None and now_ns - self._imu_arrival_ns < IMU_SILENT_NS
+
+    def poll(self, now_ns: int, flush: bool = False) -> list[Output]:
+        """Process every queued frame that is ready (see the module docstring).
+
+        Args:
+            now_ns: the caller's current time, on the clock of ``arrival_ns``, ns.
+            flush: process every queued frame now (end of a bag, shutdown).
+
+        Returns:
+            One Output per processed frame, in order.
+        """
+        outs: list[Output] = []
+        if self._window.start_ns is None:
+            self._window.start_ns = now_ns
+        wait_ns = round(self.options.imu_wait_s * 1e9)
+        while self._pending:
+            item = self._pending[0]
+            engine = self._engine
+            if engine is None:
+                if not flush and self._camera_error is None and now_ns - item.arrival_ns < wait_ns:
+                    break  # camera_info may be just behind its image
+                self._pending.popleft()
+                if self._camera_error is not None:
+                    self._skip("no_camera_info", f"no valid camera_info: {self._camera_error}")
+                else:
+                    self._skip("no_camera_info", "no camera_info received yet")
+                continue
+            stamp = self._stamp_of(item.msg)
+            if stamp is None:
+                self._pending.popleft()
+                continue
+            covered = engine.covers(stamp)
+            if not covered and not flush:
+                offset = engine.gyro.imu_time_offset_ns
+                passed = self._newest_imu_ns is not None and self._newest_imu_ns - offset > stamp
+                waiting = now_ns - item.arrival_ns < wait_ns
+                if waiting and not passed and self._imu_live(now_ns):
+                    break
+            self._pending.popleft()
+            out = self._process(item, stamp, covered)
+            if out is not None:
+                outs.append(out)
+        return outs
+
+    def next_deadline_ns(self) -> int | None:
+        """When the oldest queued frame stops waiting for IMU (caller's clock), or None."""
+        if not self._pending:
+            return None
+        return self._pending[0].arrival_ns + round(self.options.imu_wait_s * 1e9)
+
+    def _skip(self, key: str, reason: str) -> None:
+        self._count("skipped_" + key)
+        self._last_empty_reason = reason
+        if key == "bad_image":
+            self._last_bad_image = reason
+
+    @staticmethod
+    def _stamp_or_zero(msg: Any) -> int:
+        try:
+            return header_to_ns(msg.header)
+        except ValueError:
+            return 0
+
+    def _stamp_of(self, msg: Any) -> int | None:
+        try:
+            return header_to_ns(msg.header)
+        except ValueError as err:
+            self._skip("bad_image", f"image header: {err}")
+            return None
+
+    def _speed_for(self, stamp: int) -> float | None:
+        if self.options.speed_source == "none" or not self._speeds:
+            return None
+        best = min(self._speeds, key=lambda s: abs(s[0] - stamp))
+        if abs(best[0] - stamp) > self.options.speed_max_age_s * 1e9:
+            self._count("speed_stale")
+            return None
+        if best[1] < self.options.min_speed or best[1] <= 0:
+            self._count("speed_too_low")
+            return None
+        return best[1]
+
+    def _process(self, item: _Pending, stamp: int, covered: bool) -> Output | None:
+        engine = self._engine
+        camera = self._camera
+        if engine is None or camera is None:
+            return None
+        msg = item.msg
+        bits = self.options.significant_bits
+        try:
+            if hasattr(msg, "format"):
+                frame = compressed_to_frame(msg, bits)
+            else:
+                frame = image_to_frame(msg, bits)
+        except (ValueError, OwlError) as err:
+            self._skip("bad_image", str(err))
+            return None
+        h, w = frame.image.shape
+        if (w, h) != (camera.width, camera.height):
+            self._skip(
+                "bad_image",
+                f"image size {w}x{h} (image.width x image.height) differs from camera_info "
+                f"{camera.width}x{camera.height}",
+            )
+            return None
+        if self._last_stamp is not None and stamp <= self._last_stamp:
+            if stamp == self._last_stamp:
+                self._skip("duplicate_stamp", f"image stamp {stamp} ns repeated")
+                return None
+            self._time_jump(
+                f"image stamp went back {(self._last_stamp - stamp) * 1e-9:.3f} s ({stamp} ns "
+                f"after {self._last_stamp} ns): engine reset"
+            )
+            covered = engine.covers(stamp)
+        try:
+            result = engine.process(frame)
+        except OwlError as err:
+            self._skip("engine_error", f"engine: {err}")
+            return None
+        self._last_stamp = stamp
+        self._last_result = result
+        if not covered:
+            self._count("frames_imu_not_covered")
+        self._count("processed")
+        self._window.process_s.append(result.timings.get("total", math.nan))
+        self._window.points.append(result.num_points)
+        speed = self._speed_for(stamp)
+        header = msg.header
+        cloud = frame_result_to_cloud(result, header, speed=speed)
+        heading = None
+        if result.heading is not None:
+            heading = heading_to_msg(result.heading, header)
+            self._count("headings")
+        if result.num_points:
+            self._count("frames_with_points")
+            if speed is not None:
+                self._count("frames_metric")
+        else:
+            self._last_empty_reason = "; ".join(result.reasons) or "no points"
+        return Output(result, cloud, heading, frame.image, header, speed, item.arrival_ns)
+
+    def record_latency(self, latency_s: float, stamp_latency_s: float | None = None) -> None:
+        """Record one frame's arrival -> publication latency (and image stamp ->
+        publication on the ROS clock), seconds, for diagnostics."""
+        self._window.latency_s.append(float(latency_s))
+        if stamp_latency_s is not None:
+            self._window.stamp_latency_s.append(float(stamp_latency_s))
+
+    # ------------------------------------------------------------------ diagnostics
+
+    def diagnostics(self, now_ns: int, reset_window: bool = True) -> list[StatusRecord]:
+        """Status records for /diagnostics over the window since the last call.
+
+        Three statuses: ``owl: input`` (rates, drops, bad input, QoS), ``owl: processing``
+        (frames, points, timing, latency, reason for empty output, time jumps) and
+        ``owl: gyro`` (bias estimate, IMU coverage).
+        """
+        win = self._window
+        c = win.counts
+        span_s = (now_ns - win.start_ns) * 1e-9 if win.start_ns is not None else math.nan
+        span_ok = span_s > 0
+
+        def rate(key: str) -> float:
+            return c[key] / span_s if span_ok else math.nan
+
+        t = self.totals
+        imu_drops = {k: t[k] for k in ("imu_non_finite", "imu_duplicate", "imu_out_of_order")}
+        in_level = Level.OK
+        problems = []
+        if self._camera_error is not None:
+            in_level = Level.ERROR
+            problems.append(f"camera_info invalid: {self._camera_error}")
+        elif self._camera is None:
+            in_level = Level.ERROR
+            problems.append("no camera_info received")
+        if c["images"] == 0:
+            in_level = max(in_level, Level.WARN)
+            problems.append("no images")
+        if c["imu"] == 0:
+            in_level = max(in_level, Level.WARN)
+            problems.append("no IMU")
+        if c["skipped_bad_image"]:
+            in_level = max(in_level, Level.WARN)
+            problems.append(f"bad image: {self._last_bad_image}")
+        if c["imu_non_finite"] + c["imu_duplicate"] + c["imu_out_of_order"] + c["imu_invalid"]:
+            in_level = max(in_level, Level.WARN)
+            problems.append(f"bad IMU samples dropped: {self._last_imu_problem}")
+        if c["qos_events"]:
+            in_level = max(in_level, Level.WARN)
+            problems.append(f"QoS: {self._qos_events[-1]}")
+        input_rec = StatusRecord.build(
+            f"{DIAG_PREFIX}: input",
+            in_level,
+            "; ".join(problems) if problems else "inputs OK",
+            {
+                "image_rate_hz": rate("images"),
+                "imu_rate_hz": rate("imu"),
+                "camera_info_rate_hz": rate("camera_info"),
+                "speed_rate_hz": rate("speed"),
+                "images_total": t["images"],
+                "imu_total": t["imu"],
+                "bad_images_total": t["skipped_bad_image"],
+                "last_bad_image": self._last_bad_image,
+                "camera_info_error": self._camera_error or "",
+                "imu_invalid_total": t["imu_invalid"],
+                **{f"{k}_total": v for k, v in imu_drops.items()},
+                "last_imu_problem": self._last_imu_problem,
+                "qos_events_total": t["qos_events"],
+                "qos_last_event": self._qos_events[-1] if self._qos_events else "",
+            },
+        )
+        dropped = c["dropped_queue_full"]
+        proc_level = Level.OK
+        if c["processed"] == 0 or c["frames_with_points"] == 0:
+            proc_level = Level.WARN
+        if dropped or c["time_jumps"]:
+            proc_level = max(proc_level, Level.WARN)
+        if c["frames_with_points"]:
+            message = (
+                f"{rate('processed'):.1f} frames/s, "
+                f"{float(np.mean(win.points)) if win.points else 0:.0f} points/frame"
+            )
+        else:
+            message = f"no points: {self._last_empty_reason or 'no frames processed'}"
+        if dropped:
+            message += f"; {dropped} frames dropped (queue full, newest wins)"
+        if c["time_jumps"]:
+            message += f"; time jump: {self._last_jump}"
+        result = self._last_result
+        proc_rec = StatusRecord.build(
+            f"{DIAG_PREFIX}: processing",
+            proc_level,
+            message,
+            {
+                "processed_rate_hz": rate("processed"),
+                "frames_processed_total": t["processed"],
+                "frames_with_points_total": t["frames_with_points"],
+                "frames_metric_total": t["frames_metric"],
+                "headings_total": t["headings"],
+                "points_per_frame_mean": float(np.mean(win.points)) if win.points else math.nan,
+                "processing_ms_mean": 1e3 * float(np.mean(win.process_s))
+                if win.process_s
+                else math.nan,
+                "processing_ms_max": 1e3 * max(win.process_s) if win.process_s else math.nan,
+                "latency_ms_p50": 1e3 * _percentile(win.latency_s, 50),
+                "latency_ms_p95": 1e3 * _percentile(win.latency_s, 95),
+                "stamp_to_publish_ms_p50": 1e3 * _percentile(win.stamp_latency_s, 50),
+                "dropped_queue_full_total": t["dropped_queue_full"],
+                "dropped_time_jump_total": t["dropped_time_jump"],
+                "skipped_no_camera_info_total": t["skipped_no_camera_info"],
+                "skipped_bad_image_total": t["skipped_bad_image"],
+                "skipped_duplicate_stamp_total": t["skipped_duplicate_stamp"],
+                "skipped_engine_error_total": t["skipped_engine_error"],
+                "time_jumps_total": t["time_jumps"],
+                "last_time_jump": self._last_jump,
+                "last_empty_reason": self._last_empty_reason,
+                "heading_sigma_deg": math.degrees(result.heading_sigma_rad)
+                if result is not None
+                else math.nan,
+                "queue_size": self.options.queue_size,
+            },
+        )
+        engine = self._engine
+        bias = engine.gyro_bias if engine is not None else np.zeros(3)
+        bias_sigma = engine.gyro_bias_sigma if engine is not None else np.full(3, math.nan)
+        gaps = c["frames_imu_not_covered"]
+        gyro_level = Level.WARN if gaps or (c["imu"] == 0 and c["images"]) else Level.OK
+        gyro_msg = f"bias [{bias[0]:.4g}, {bias[1]:.4g}, {bias[2]:.4g}] rad/s"
+        if gaps:
+            gyro_msg += f"; {gaps} frames without full IMU coverage"
+        gyro_rec = StatusRecord.build(
+            f"{DIAG_PREFIX}: gyro",
+            gyro_level,
+            gyro_msg,
+            {
+                "bias_x_rad_s": float(bias[0]),
+                "bias_y_rad_s": float(bias[1]),
+                "bias_z_rad_s": float(bias[2]),
+                "bias_sigma_rad_s": float(np.max(bias_sigma)),
+                "frames_imu_not_covered_total": t["frames_imu_not_covered"],
+                "require_gyro": self.options.engine.require_gyro,
+            },
+        )
+        if reset_window:
+            self._window = _Window(start_ns=now_ns)
+        return [input_rec, proc_rec, gyro_rec]
+
+    def start_window(self, now_ns: int) -> None:
+        """Start the first diagnostics window at ``now_ns`` (caller's clock)."""
+        self._window.start_ns = now_ns
+
+
+def draw_debug(
+    grey: npt.NDArray[np.uint8], result: FrameResult, camera: CameraModel | None
+) -> npt.NDArray[np.uint8]:
+    """The owl/debug_image picture: (H, W, 3) uint8 BGR.
+
+    Each point is a 5x5 dot coloured by r/|t| (red near, blue far, on a log scale between
+    0.5 and 20 s); suspected moving points are magenta with a white centre; the heading
+    (focus of expansion) is a green cross in a circle when it lies in front of the camera.
+    Drawing is vectorised (no loop over points).
+    """
+    img = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+    h, w = grey.shape
+    n = result.num_points
+    if n:
+        ros = np.clip(np.asarray(result.range_over_speed, dtype=np.float64), 0.5, 20.0)
+        level = np.log(ros / 0.5) / math.log(40.0)  # 0 near .. 1 far
+        lut = cv2.applyColorMap(
+            np.round(255 * (1.0 - level)).astype(np.uint8).reshape(-1, 1), cv2.COLORMAP_JET
+        ).reshape(-1, 3)
+        moving = (result.flags & np.uint8(PointFlag.MOVING)) != 0
+        lut[moving] = (255, 0, 255)
+        uv = np.rint(result.pixels).astype(np.int64)
+        offs = np.arange(-2, 3)
+        du, dv = np.meshgrid(offs, offs)
+        us = np.clip(uv[:, 0, None] + du.reshape(1, -1), 0, w - 1)
+        vs = np.clip(uv[:, 1, None] + dv.reshape(1, -1), 0, h - 1)
+        img[vs, us] = lut[:, None, :]
+        centre_u = np.clip(uv[moving, 0], 0, w - 1)
+        centre_v = np.clip(uv[moving, 1], 0, h - 1)
+        img[centre_v, centre_u] = (255, 255, 255)
+    if result.heading is not None and camera is not None and result.heading[2] > 0:
+        foe = camera.bearing_to_pixel(np.asarray(result.heading, dtype=np.float64)[None])[0]
+        if np.all(np.isfinite(foe)):
+            c = (round(float(foe[0])), round(float(foe[1])))
+            size = max(6, min(h, w) // 20)
+            cv2.circle(img, c, size, (0, 255, 0), 2)
+            cv2.drawMarker(img, c, (0, 255, 0), cv2.MARKER_CROSS, 2 * size, 2)
+    return img
