@@ -1,0 +1,712 @@
+"""owl_eval RESULT_BAG --truth TRUTH_BAG: score an OWL result against ground truth.
+
+Metrics (per frame, then pooled over the bag; the same functions score OWL and the
+baseline in ``owl_bench``, see :func:`score_frame` and :func:`summarize`):
+
+- **heading error** (degrees): angle between the estimated heading and the true one, the
+  normalised camera velocity in the camera optical frame at the image stamp
+  (``/ground_truth/twist``). Frames where the camera does not translate
+  (``|v| < MIN_SPEED``) have no true heading; a heading there is counted as a false one.
+- **range_over_speed relative error**: ``|est - true| / true`` per point, on static
+  points only, where ``true = range(u, v) / |v|`` with the range image
+  (``/ground_truth/range``, metres along the pixel's ray) sampled at the nearest pixel to
+  the point's ``(u, v)``; points on the moving-object mask or the sky are not scored.
+- **points per frame** and **coverage**: fraction of the cells of a ``GRID`` over the image
+  holding at least one point.
+- **moving points**: precision and recall of the ``flags`` MOVING bit (4) against the
+  moving mask (``/ground_truth/moving_mask``) sampled at the point.
+- **gyro-bias error** (rad/s, IMU frame): ``|b_est - b_true|``; the estimate comes from the
+  result's ``/diagnostics`` (``owl: gyro`` keys ``bias_x_rad_s`` ...), the truth from the
+  truth bag's ``owl_make_bag`` options (``--gyro-bias``; metadata ``custom_data``). A bias
+  random walk (``--gyro-bias-walk``) is not recorded in the bag, so the truth is then only
+  the initial bias (the text says so).
+
+Result topics: ``/owl/points`` (sensor_msgs/PointCloud2 with at least ``u v
+range_over_speed flags``) and ``/owl/heading`` (geometry_msgs/Vector3Stamped), matched to
+the truth by header stamp (= image stamp). Text for people; ``--json`` prints one object
+``{"summary": {...}, "frames": [...]}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NoReturn
+
+import numpy as np
+import numpy.typing as npt
+
+from bags.errors import BagError
+from bags.io import BagReader
+
+PROG = "owl_eval"
+FloatArray = npt.NDArray[np.float64]
+
+#: Below this camera speed (m/s) a frame has no true heading.
+MIN_SPEED = 1e-3
+#: Coverage grid (columns, rows) over the image.
+GRID = (16, 12)
+MOVING_BIT = 4
+TRUTH_TOPICS = {
+    "twist": "/ground_truth/twist",
+    "range": "/ground_truth/range",
+    "mask": "/ground_truth/moving_mask",
+}
+POINTS_TOPICS = ("/owl/points", "owl/points")
+HEADING_TOPICS = ("/owl/heading", "owl/heading")
+DIAGNOSTICS_TOPIC = "/diagnostics"
+BIAS_KEYS = ("bias_x_rad_s", "bias_y_rad_s", "bias_z_rad_s")
+
+
+class EvalError(Exception):
+    """An input owl_eval cannot score (one line naming the bag, topic or value)."""
+
+
+# ------------------------------------------------------------------------ records
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One frame of an estimator's output, as scored. N points.
+
+    Attributes:
+        stamp_ns: image stamp, ns.
+        heading: (3,) translation direction, camera optical frame (any length), or None.
+        pixels: (N, 2) float64 (u, v) pixels.
+        range_over_speed: (N,) float64 r/|t|, seconds (NaN = no range for the point).
+        flags: (N,) uint8 PointFlag bits (4 = MOVING).
+        gyro_bias: (3,) bias estimate, IMU frame, rad/s, or None.
+    """
+
+    stamp_ns: int
+    heading: FloatArray | None
+    pixels: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
+    range_over_speed: FloatArray = field(default_factory=lambda: np.zeros(0))
+    flags: npt.NDArray[np.uint8] = field(default_factory=lambda: np.zeros(0, dtype=np.uint8))
+    gyro_bias: FloatArray | None = None
+
+
+@dataclass(frozen=True)
+class Truth:
+    """Ground truth at one image stamp.
+
+    Attributes:
+        stamp_ns: image stamp, ns.
+        velocity: (3,) camera velocity relative to the static scene, optical frame, m/s.
+        range_m: (H, W) float32 range along each pixel's ray, metres (+inf sky, NaN invalid).
+        mask: (H, W) bool, True on independently moving objects, or None (no mask).
+    """
+
+    stamp_ns: int
+    velocity: FloatArray
+    range_m: npt.NDArray[np.float32]
+    mask: npt.NDArray[np.bool_] | None = None
+
+
+@dataclass(frozen=True)
+class FrameScore:
+    """The metrics of one frame.
+
+    Attributes:
+        stamp_ns: image stamp, ns.
+        translating: the camera moves (|v| >= MIN_SPEED): the frame has a true heading.
+        has_heading: the estimate gave a heading.
+        heading_deg: heading error, degrees (NaN without estimate or true heading).
+        points: number of output points.
+        coverage: fraction of GRID cells with a point, 0..1.
+        range_rel: (M,) relative r/|t| errors of the scored static points.
+        range_signed: (M,) signed relative errors (est - true) / true.
+        range_true: (M,) true r/|t| of those points, seconds.
+        range_est: (M,) estimated r/|t| of those points, seconds.
+        moving_tp, moving_fp, moving_fn: MOVING flags against the mask (counts).
+        moving_flagged: points flagged MOVING.
+        bias_error: |b_est - b_true|, rad/s (NaN when either is unknown).
+    """
+
+    stamp_ns: int
+    translating: bool
+    has_heading: bool
+    heading_deg: float
+    points: int
+    coverage: float
+    range_rel: FloatArray
+    range_signed: FloatArray
+    range_true: FloatArray
+    range_est: FloatArray
+    moving_tp: int
+    moving_fp: int
+    moving_fn: int
+    moving_flagged: int
+    bias_error: float
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready per-frame record (point arrays reduced to medians)."""
+        return {
+            "stamp_ns": self.stamp_ns,
+            "translating": self.translating,
+            "has_heading": self.has_heading,
+            "heading_deg": _num(self.heading_deg),
+            "points": self.points,
+            "coverage": _num(self.coverage),
+            "range_scored": int(self.range_rel.size),
+            "range_rel_median": _num(_median(self.range_rel)),
+            "moving_tp": self.moving_tp,
+            "moving_fp": self.moving_fp,
+            "moving_fn": self.moving_fn,
+            "bias_error_rad_s": _num(self.bias_error),
+        }
+
+
+# ------------------------------------------------------------------------ metrics
+
+
+def _num(x: float) -> float | None:
+    """JSON number or null (NaN/inf -> None)."""
+    return float(x) if x is not None and math.isfinite(x) else None
+
+
+def _median(x: FloatArray) -> float:
+    return float(np.median(x)) if x.size else math.nan
+
+
+def _p90(x: FloatArray) -> float:
+    return float(np.percentile(x, 90)) if x.size else math.nan
+
+
+def heading_error_deg(estimated: npt.ArrayLike, true: npt.ArrayLike) -> FloatArray:
+    """Angle between directions, degrees (atan2 form: exact for small angles too).
+
+    Args:
+        estimated: (..., 3) directions (any non-zero length).
+        true: (..., 3) directions, broadcastable to ``estimated``.
+
+    Returns:
+        (...) float64 degrees in [0, 180]; NaN where either vector is zero or not finite.
+    """
+    a = np.asarray(estimated, dtype=np.float64)
+    b = np.asarray(true, dtype=np.float64)
+    if a.shape[-1:] != (3,) or b.shape[-1:] != (3,):
+        raise EvalError(f"directions must have shape (..., 3), got {a.shape} and {b.shape}")
+    cross = np.linalg.norm(np.cross(a, b), axis=-1)
+    dot = np.einsum("...i,...i->...", a, b)
+    ok = (np.linalg.norm(a, axis=-1) > 0) & (np.linalg.norm(b, axis=-1) > 0)
+    out = np.degrees(np.arctan2(cross, dot))
+    return np.where(ok & np.isfinite(out), out, np.nan)
+
+
+def sample_nearest(image: npt.NDArray[Any], pixels: npt.ArrayLike) -> FloatArray:
+    """Values of ``image`` at the nearest pixel centres of ``pixels``.
+
+    Args:
+        image: (H, W) array (pixel centres at integer coordinates).
+        pixels: (N, 2) (u, v) float pixels.
+
+    Returns:
+        (N,) float64; NaN outside the image or for non-finite pixels.
+    """
+    px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    h, w = image.shape[:2]
+    finite = np.isfinite(px).all(axis=1)
+    iu = np.rint(np.where(finite, px[:, 0], -1)).astype(np.int64)
+    iv = np.rint(np.where(finite, px[:, 1], -1)).astype(np.int64)
+    inside = finite & (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
+    out = np.full(px.shape[0], np.nan)
+    out[inside] = image[iv[inside], iu[inside]]
+    return out
+
+
+def true_range_over_speed(
+    pixels: npt.ArrayLike, range_m: npt.NDArray[Any], speed: float
+) -> FloatArray:
+    """True r/|t| at each pixel: range image at the nearest pixel / camera speed.
+
+    Args:
+        pixels: (N, 2) (u, v) pixels.
+        range_m: (H, W) metres along each pixel's ray (+inf sky).
+        speed: |v|, m/s (> 0).
+
+    Returns:
+        (N,) float64 seconds; NaN outside the image, on the sky, or for speed <= 0.
+    """
+    if not speed > 0:
+        return np.full(np.asarray(pixels).reshape(-1, 2).shape[0], np.nan)
+    r = sample_nearest(range_m, pixels)
+    return np.where(np.isfinite(r) & (r > 0), r / speed, np.nan)
+
+
+def relative_error(estimated: npt.ArrayLike, true: npt.ArrayLike) -> FloatArray:
+    """Signed relative error ``(est - true) / true`` (NaN where either is not finite)."""
+    e = np.asarray(estimated, dtype=np.float64)
+    t = np.asarray(true, dtype=np.float64)
+    ok = np.isfinite(e) & np.isfinite(t) & (t != 0)
+    return np.where(ok, (e - t) / np.where(ok, t, 1.0), np.nan)
+
+
+def coverage(
+    pixels: npt.ArrayLike, width: int, height: int, grid: tuple[int, int] = GRID
+) -> float:
+    """Fraction of the ``grid`` (cols, rows) cells over a width x height image with a point."""
+    px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    px = px[np.isfinite(px).all(axis=1)]
+    cols, rows = grid
+    cu = np.floor(px[:, 0] / width * cols).astype(np.int64)
+    cv = np.floor(px[:, 1] / height * rows).astype(np.int64)
+    ok = (cu >= 0) & (cu < cols) & (cv >= 0) & (cv < rows)
+    return float(np.unique(cv[ok] * cols + cu[ok]).size) / (cols * rows)
+
+
+def score_frame(
+    est: Estimate | None, truth: Truth, truth_bias: npt.ArrayLike | None = None
+) -> FrameScore:
+    """All metrics of one frame (``est`` None = the estimator gave nothing for it)."""
+    est = est if est is not None else Estimate(truth.stamp_ns, None)
+    speed = float(np.linalg.norm(truth.velocity))
+    translating = speed >= MIN_SPEED
+    has_heading = est.heading is not None and bool(np.all(np.isfinite(est.heading)))
+    heading_deg = math.nan
+    if has_heading and translating:
+        heading_deg = float(heading_error_deg(est.heading, truth.velocity))
+    h, w = truth.range_m.shape[:2]
+    n = int(est.pixels.shape[0])
+    moving_true = np.zeros(n, dtype=bool)
+    if truth.mask is not None:
+        moving_true = sample_nearest(truth.mask.astype(np.float64), est.pixels) > 0.5
+    flagged = (np.asarray(est.flags, dtype=np.uint8) & MOVING_BIT) > 0
+    ros_true = (
+        true_range_over_speed(est.pixels, truth.range_m, speed)
+        if translating
+        else np.full(n, np.nan)
+    )
+    signed = relative_error(est.range_over_speed, ros_true)
+    scored = np.isfinite(signed) & ~moving_true
+    bias_error = math.nan
+    if est.gyro_bias is not None and truth_bias is not None:
+        bias_error = float(np.linalg.norm(np.asarray(est.gyro_bias) - np.asarray(truth_bias)))
+    return FrameScore(
+        stamp_ns=truth.stamp_ns,
+        translating=translating,
+        has_heading=has_heading,
+        heading_deg=heading_deg,
+        points=n,
+        coverage=coverage(est.pixels, w, h),
+        range_rel=np.abs(signed[scored]),
+        range_signed=signed[scored],
+        range_true=ros_true[scored],
+        range_est=np.asarray(est.range_over_speed, dtype=np.float64)[scored],
+        moving_tp=int(np.count_nonzero(flagged & moving_true)),
+        moving_fp=int(np.count_nonzero(flagged & ~moving_true)),
+        moving_fn=int(np.count_nonzero(~flagged & moving_true)),
+        moving_flagged=int(np.count_nonzero(flagged)),
+        bias_error=bias_error,
+    )
+
+
+def summarize(scores: Sequence[FrameScore], has_mask: bool) -> dict[str, Any]:
+    """Pooled metrics over frames (JSON-ready; null where a metric does not apply).
+
+    Keys: frames, translating_frames, heading_frames (translating frames with a heading),
+    heading_availability, false_heading_frames (heading while not translating),
+    heading_deg_median/p90/mean/max, range_rel_median/p90 (pooled over static points),
+    range_signed_median, range_points, points_per_frame, coverage_mean,
+    moving_precision/recall (null without a mask or without flags / moving points),
+    moving_flagged_fraction, bias_error_final_rad_s, bias_error_median_rad_s (second half).
+    """
+    trans = [s for s in scores if s.translating]
+    head = np.array([s.heading_deg for s in trans if s.has_heading], dtype=np.float64)
+    rel = np.concatenate([s.range_rel for s in scores]) if scores else np.zeros(0)
+    signed = np.concatenate([s.range_signed for s in scores]) if scores else np.zeros(0)
+    tp = sum(s.moving_tp for s in scores)
+    fp = sum(s.moving_fp for s in scores)
+    fn = sum(s.moving_fn for s in scores)
+    npts = sum(s.points for s in scores)
+    bias = np.array([s.bias_error for s in scores], dtype=np.float64)
+    bias_known = bias[np.isfinite(bias)]
+    half = bias_known[bias_known.size // 2 :]
+    return {
+        "frames": len(scores),
+        "translating_frames": len(trans),
+        "heading_frames": int(head.size),
+        "heading_availability": _num(head.size / len(trans)) if trans else None,
+        "false_heading_frames": sum(1 for s in scores if s.has_heading and not s.translating),
+        "heading_deg_median": _num(_median(head)),
+        "heading_deg_p90": _num(_p90(head)),
+        "heading_deg_mean": _num(float(head.mean())) if head.size else None,
+        "heading_deg_max": _num(float(head.max())) if head.size else None,
+        "range_rel_median": _num(_median(rel)),
+        "range_rel_p90": _num(_p90(rel)),
+        "range_signed_median": _num(_median(signed)),
+        "range_points": int(rel.size),
+        "points_per_frame": _num(npts / len(scores)) if scores else None,
+        "coverage_mean": _num(float(np.mean([s.coverage for s in scores]))) if scores else None,
+        "moving_precision": _num(tp / (tp + fp)) if has_mask and tp + fp else None,
+        "moving_recall": _num(tp / (tp + fn)) if has_mask and tp + fn else None,
+        "moving_flagged_fraction": _num((tp + fp) / npts) if npts else None,
+        "bias_error_final_rad_s": _num(float(bias_known[-1])) if bias_known.size else None,
+        "bias_error_median_rad_s": _num(_median(half)),
+    }
+
+
+# ------------------------------------------------------------------------ bag reading
+
+
+def _rclpy_msg(reader: BagReader, raw: Any) -> Any:
+    from rclpy.serialization import deserialize_message
+
+    from msg_adapters.msgtypes import message_class
+
+    try:
+        return deserialize_message(raw.data, message_class(raw.msgtype))
+    except Exception as err:  # CDR errors have no common base
+        msg = f"cannot decode {raw.msgtype} on {raw.topic} in {reader.path}: {err}"
+        raise EvalError(" ".join(msg.split())) from None
+
+
+def _pick(topics: dict[str, Any], names: Iterable[str], wanted: str | None) -> str | None:
+    if wanted is not None:
+        return wanted if wanted in topics else None
+    return next((n for n in names if n in topics), None)
+
+
+def read_estimates(
+    path: str | Path, points_topic: str | None = None, heading_topic: str | None = None
+) -> dict[int, Estimate]:
+    """The result bag's frames by image stamp (ns): points, heading, latest bias estimate.
+
+    Raises:
+        EvalError: neither a points nor a heading topic, a cloud without the needed fields.
+        BagError: missing, not a bag, corrupt.
+    """
+    from msg_adapters.diagnostics import msg_to_records
+    from msg_adapters.heading import msg_to_heading
+    from msg_adapters.pointcloud import cloud_to_array
+    from msg_adapters.stamps import header_to_ns
+
+    with BagReader(path) as bag:
+        topics = bag.topics
+        pts_t = _pick(topics, POINTS_TOPICS, points_topic)
+        head_t = _pick(topics, HEADING_TOPICS, heading_topic)
+        if pts_t is None and head_t is None:
+            want = points_topic or heading_topic or "/owl/points or /owl/heading"
+            msg = f"result bag {path} has no {want} (has: {', '.join(sorted(topics)) or 'none'})"
+            raise EvalError(msg)
+        read = [t for t in (pts_t, head_t) if t is not None]
+        if DIAGNOSTICS_TOPIC in topics:
+            read.append(DIAGNOSTICS_TOPIC)
+        clouds: dict[int, Any] = {}
+        headings: dict[int, FloatArray] = {}
+        bias_track: list[tuple[int, FloatArray]] = []
+        for raw in bag.messages(read):
+            msg = _rclpy_msg(bag, raw)
+            if raw.topic == pts_t:
+                arr = cloud_to_array(msg)
+                missing = [f for f in ("u", "v", "range_over_speed") if f not in arr.dtype.names]
+                if missing:
+                    raise EvalError(f"{pts_t} in {path} has no field {missing[0]!r}")
+                clouds[header_to_ns(msg.header)] = arr
+            elif raw.topic == head_t:
+                headings[header_to_ns(msg.header)] = msg_to_heading(msg)
+            else:
+                _, records = msg_to_records(msg)
+                for rec in records:
+                    values = rec.value_map()
+                    if all(k in values for k in BIAS_KEYS):
+                        try:
+                            b = np.array([float(values[k]) for k in BIAS_KEYS])
+                        except ValueError:
+                            continue
+                        bias_track.append((raw.log_time_ns, b))
+    stamps = sorted(set(clouds) | set(headings))
+    bias_t = np.array([t for t, _ in bias_track], dtype=np.int64)
+    out: dict[int, Estimate] = {}
+    for stamp in stamps:
+        arr = clouds.get(stamp)
+        bias = None
+        if bias_t.size:
+            k = int(np.searchsorted(bias_t, stamp, side="right")) - 1
+            bias = bias_track[max(k, 0)][1]
+        if arr is not None:
+            flags = arr["flags"] if "flags" in arr.dtype.names else np.zeros(arr.size)
+            pixels = np.c_[arr["u"], arr["v"]].astype(np.float64)
+            ros = arr["range_over_speed"].astype(np.float64)
+        else:
+            pixels, ros, flags = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+        out[stamp] = Estimate(
+            stamp, headings.get(stamp), pixels, ros, np.asarray(flags, dtype=np.uint8), bias
+        )
+    return out
+
+
+def truth_info(path: str | Path) -> dict[str, Any]:
+    """The truth bag's owl_make_bag options (metadata custom_data), {} when absent."""
+    meta = Path(path) / "metadata.yaml"
+    if not meta.is_file():
+        return {}
+    import yaml
+
+    try:
+        doc = yaml.safe_load(meta.read_text())
+        text = doc["rosbag2_bagfile_information"].get("custom_data", {}).get("owl_make_bag")
+        return dict(json.loads(text)) if text else {}
+    except (yaml.YAMLError, KeyError, TypeError, AttributeError, ValueError):
+        return {}
+
+
+def iter_truth(path: str | Path) -> Iterator[Truth]:
+    """Truth frames of a truth bag in stamp order (twist + range [+ mask] per image stamp).
+
+    Raises:
+        EvalError: the bag lacks /ground_truth/twist or /ground_truth/range.
+    """
+    from msg_adapters.image import image_to_array
+    from msg_adapters.stamps import header_to_ns
+
+    with BagReader(path) as bag:
+        topics = bag.topics
+        for key in ("twist", "range"):
+            if TRUTH_TOPICS[key] not in topics:
+                msg = f"truth bag {path} has no {TRUTH_TOPICS[key]} (has: "
+                raise EvalError(msg + ", ".join(sorted(topics)) + ")")
+        has_mask = TRUTH_TOPICS["mask"] in topics
+        need = 3 if has_mask else 2
+        partial: dict[int, dict[str, Any]] = {}
+        read = [TRUTH_TOPICS[k] for k in ("twist", "range", "mask") if k != "mask" or has_mask]
+        for raw in bag.messages(read):
+            msg = _rclpy_msg(bag, raw)
+            stamp = header_to_ns(msg.header)
+            slot = partial.setdefault(stamp, {})
+            if raw.topic == TRUTH_TOPICS["twist"]:
+                lin = msg.twist.linear
+                slot["velocity"] = np.array([lin.x, lin.y, lin.z], dtype=np.float64)
+            elif raw.topic == TRUTH_TOPICS["range"]:
+                slot["range"] = image_to_array(msg).astype(np.float32)
+            else:
+                slot["mask"] = image_to_array(msg) > 0
+            if len(slot) == need:
+                del partial[stamp]
+                yield Truth(stamp, slot["velocity"], slot["range"], slot.get("mask"))
+
+
+def truth_has_mask(path: str | Path) -> bool:
+    """Whether the truth bag has a moving-object mask topic."""
+    with BagReader(path) as bag:
+        return TRUTH_TOPICS["mask"] in bag.topics
+
+
+def write_result_bag(
+    path: str | Path,
+    results: Iterable[Any],
+    frame_id: str = "camera_optical_frame",
+    overwrite: bool = False,
+) -> int:
+    """Write engine FrameResults as a result bag in owl_process's layout.
+
+    ``/owl/points`` (every frame, possibly empty), ``/owl/heading`` (frames with a heading)
+    and ``/diagnostics`` (status ``owl: gyro`` with the bias keys), all stamped with the
+    image stamp. For tests, ``owl_bench`` and the demo; ``owl_process`` writes the same
+    topics from real bags. Returns the number of frames written.
+    """
+    from rclpy.serialization import serialize_message
+
+    from bags.io import BagWriter
+    from msg_adapters.diagnostics import Level, StatusRecord, records_to_msg
+    from msg_adapters.heading import heading_to_msg
+    from msg_adapters.pointcloud import frame_result_to_cloud
+    from msg_adapters.stamps import make_header
+
+    count = 0
+    with BagWriter(path, overwrite=overwrite) as bag:
+        bag.add_topic(POINTS_TOPICS[0], "sensor_msgs/msg/PointCloud2", "reliable")
+        bag.add_topic(HEADING_TOPICS[0], "geometry_msgs/msg/Vector3Stamped", "reliable")
+        bag.add_topic(DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", "reliable")
+        for res in results:
+            stamp = int(res.stamp_ns)
+            header = make_header(stamp, frame_id)
+            bag.write_raw(
+                POINTS_TOPICS[0], stamp, serialize_message(frame_result_to_cloud(res, header))
+            )
+            if res.heading is not None:
+                msg = heading_to_msg(res.heading, header)
+                bag.write_raw(HEADING_TOPICS[0], stamp, serialize_message(msg))
+            bias = np.asarray(res.gyro_bias, dtype=np.float64)
+            rec = StatusRecord.build(
+                "owl: gyro", Level.OK, "bias", dict(zip(BIAS_KEYS, map(float, bias), strict=True))
+            )
+            bag.write_raw(
+                DIAGNOSTICS_TOPIC, stamp, serialize_message(records_to_msg([rec], stamp))
+            )
+            count += 1
+    return count
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """The result of :func:`evaluate`: summary, per-frame scores and notes."""
+
+    summary: dict[str, Any]
+    frames: list[FrameScore]
+    notes: list[str]
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready object."""
+        return {
+            "summary": self.summary,
+            "notes": self.notes,
+            "frames": [s.as_dict() for s in self.frames],
+        }
+
+
+def evaluate(
+    result_path: str | Path,
+    truth_path: str | Path,
+    *,
+    points_topic: str | None = None,
+    heading_topic: str | None = None,
+    progress: bool = False,
+) -> Evaluation:
+    """Score a result bag against a truth bag (see the module docstring)."""
+    estimates = read_estimates(result_path, points_topic, heading_topic)
+    info = truth_info(truth_path)
+    notes: list[str] = []
+    truth_bias = None
+    if "gyro_bias" in info:
+        truth_bias = np.asarray(info["gyro_bias"], dtype=np.float64)
+        if float(info.get("gyro_bias_walk", 0.0) or 0.0) > 0:
+            notes.append("truth bias = the initial bias only (the bag has a bias random walk)")
+    else:
+        notes.append("truth bag records no gyro bias: bias error not scored")
+    has_mask = truth_has_mask(truth_path)
+    scores: list[FrameScore] = []
+    t0 = time.monotonic()
+    last = t0
+    for truth in iter_truth(truth_path):
+        scores.append(score_frame(estimates.pop(truth.stamp_ns, None), truth, truth_bias))
+        if progress and time.monotonic() - last > 2.0:
+            last = time.monotonic()
+            print(f"{PROG}: {len(scores)} frames scored", file=sys.stderr, flush=True)
+    if not scores:
+        raise EvalError(f"truth bag {truth_path} has no complete ground-truth frame")
+    if estimates:
+        notes.append(f"{len(estimates)} result frames have no ground truth (ignored)")
+    summary = summarize(scores, has_mask)
+    summary["truth_gyro_bias_rad_s"] = None if truth_bias is None else truth_bias.tolist()
+    summary["scenario"] = info.get("scenario")
+    return Evaluation(summary, scores, notes)
+
+
+# ------------------------------------------------------------------------ text
+
+
+def _fmt(value: Any, unit: str = "", scale: float = 1.0, digits: int = 3) -> str:
+    if value is None:
+        return "n/a"
+    if isinstance(value, int):
+        return f"{value}{unit}"
+    return f"{value * scale:.{digits}g}{unit}"
+
+
+def summary_lines(summary: dict[str, Any]) -> list[str]:
+    """The summary as aligned text lines."""
+    s = summary
+    rows = [
+        (
+            "frames (translating / with heading)",
+            f"{s['frames']} ({s['translating_frames']} / {s['heading_frames']})",
+        ),
+        (
+            "heading error median / p90",
+            f"{_fmt(s['heading_deg_median'], ' deg')} / {_fmt(s['heading_deg_p90'], ' deg')}",
+        ),
+        ("heading availability", _fmt(s["heading_availability"], " %", 100.0)),
+        ("false headings (camera not translating)", str(s["false_heading_frames"])),
+        (
+            "range_over_speed rel. error median / p90",
+            f"{_fmt(s['range_rel_median'], ' %', 100)}"
+            f" / {_fmt(s['range_rel_p90'], ' %', 100)} ({s['range_points']} static points)",
+        ),
+        ("range_over_speed signed median", _fmt(s["range_signed_median"], " %", 100)),
+        ("points per frame", _fmt(s["points_per_frame"], "", 1.0, 4)),
+        ("image coverage (16x12 cells)", _fmt(s["coverage_mean"], " %", 100)),
+        (
+            "moving points precision / recall",
+            f"{_fmt(s['moving_precision'], ' %', 100)} / {_fmt(s['moving_recall'], ' %', 100)}",
+        ),
+        ("points flagged moving", _fmt(s["moving_flagged_fraction"], " %", 100)),
+        (
+            "gyro-bias error final / median",
+            f"{_fmt(s['bias_error_final_rad_s'], ' rad/s')} / "
+            f"{_fmt(s['bias_error_median_rad_s'], ' rad/s')}",
+        ),
+    ]
+    width = max(len(k) for k, _ in rows)
+    return [f"  {k:<{width}}  {v}" for k, v in rows]
+
+
+# ------------------------------------------------------------------------ CLI
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line interface."""
+    p = _Parser(
+        prog=PROG,
+        description="Score an OWL result bag (owl/points, owl/heading) against the ground "
+        "truth of a synthetic bag (owl_make_bag): heading error, range_over_speed error, "
+        "points and coverage, moving-point precision/recall, gyro-bias error.",
+    )
+    p.add_argument("result_bag", help="bag written by owl_process (or recorded from owl_node)")
+    p.add_argument("--truth", required=True, help="bag with /ground_truth/* (owl_make_bag)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--per-frame", action="store_true", help="text: also one line per frame")
+    p.add_argument("--points-topic", default=None, help="default /owl/points or owl/points")
+    p.add_argument("--heading-topic", default=None, help="default /owl/heading or owl/heading")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``owl_eval``; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    try:
+        ev = evaluate(
+            args.result_bag,
+            args.truth,
+            points_topic=args.points_topic,
+            heading_topic=args.heading_topic,
+            progress=not args.json,
+        )
+    except (EvalError, BagError, ValueError) as err:
+        print(f"{PROG}: error: {' '.join(str(err).split())}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(ev.as_dict()))
+        return 0
+    print(
+        f"{PROG}: {args.result_bag} vs {args.truth}"
+        + (f" (scenario {ev.summary['scenario']})" if ev.summary.get("scenario") else "")
+    )
+    for line in summary_lines(ev.summary):
+        print(line)
+    for note in ev.notes:
+        print(f"  note: {note}")
+    if args.per_frame:
+        print("  stamp_ns              heading_deg  points  coverage  range_rel_med")
+        for s in ev.frames:
+            d = s.as_dict()
+            print(
+                f"  {s.stamp_ns:<20d}  {_fmt(d['heading_deg']):>11}  {s.points:>6}  "
+                f"{_fmt(d['coverage']):>8}  {_fmt(d['range_rel_median']):>13}"
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
