@@ -1,0 +1,545 @@
+"""owl_process IN_BAG -o OUT_BAG: node ``owl``'s pipeline over a bag, without DDS.
+
+Reads the image (raw or compressed: taken from the topic's type), camera_info and IMU
+topics (and optionally a speed topic) in log-time order, feeds them to the same
+:class:`~owl_ros.pipeline.Pipeline` the node uses, with the bag's log time as the clock
+(so the result is deterministic: the same bag and options give the same bytes), and
+writes an MCAP rosbag2 with
+
+- ``/owl/points`` (sensor_msgs/PointCloud2) and ``/owl/heading`` (Vector3Stamped), logged
+  at the image stamp, headers = the image's header;
+- ``/diagnostics`` (DiagnosticArray) every ``diagnostics_period_s`` of bag time and at the
+  end (these hold measured processing times, so only they differ between runs);
+- with ``--copy-inputs``, every input topic of the bag as recorded (one file for Foxglove).
+
+The camera-IMU rotation comes from ``--camera-to-imu-rotation-xyzw`` when given, else from
+the bag's ``/tf_static`` (the transform from the IMU frame to the camera frame, either
+direction), else identity. Any node parameter can be set with ``-p NAME:=VALUE`` or a
+ROS parameter file (``--params-file config/owl.yaml``).
+
+Python use (evaluation, demo)::
+
+    from owl_ros.process import process_bag, ProcessOptions
+    summary = process_bag("in_bag", "out_bag", ProcessOptions())
+    summary.heading_stamps_ns, summary.headings, summary.heading_sigma_rad
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, NoReturn, TextIO
+
+import numpy as np
+import numpy.typing as npt
+
+from bags.errors import BagError, CorruptBagError
+from bags.io import BagReader, BagWriter, RawMessage
+from msg_adapters.diagnostics import records_to_msg
+from msg_adapters.msgtypes import message_class
+from msg_adapters.stamps import header_to_ns
+from owl_core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from owl_ros.params import (
+    NodeOptions,
+    ParameterError,
+    build_options,
+    parse_value,
+    to_values,
+)
+from owl_ros.pipeline import Output, Pipeline
+
+PROG = "owl_process"
+
+POINTS_TOPIC = "/owl/points"
+HEADING_TOPIC = "/owl/heading"
+DIAGNOSTICS_TOPIC = "/diagnostics"
+TF_STATIC = "/tf_static"
+
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+SPEED_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/TwistStamped")
+
+
+class ProcessError(Exception):
+    """Bad input for owl_process (one-line message naming the topic, path or value)."""
+
+
+@dataclass(frozen=True)
+class ProcessOptions:
+    """What to read and how.
+
+    Attributes:
+        node: node options (engine included); the same parameters as node ``owl``.
+        image_topic: sensor_msgs/Image or CompressedImage topic.
+        camera_info_topic: sensor_msgs/CameraInfo topic.
+        imu_topic: sensor_msgs/Imu topic ("" = no IMU).
+        speed_topic: nav_msgs/Odometry or TwistStamped topic for metric clouds ("" = none).
+        rotation_from_tf: take camera_to_imu_rotation_xyzw from /tf_static when present
+            (False when the rotation was given explicitly).
+        copy_inputs: copy every input topic into the output bag.
+        overwrite: replace an existing output bag.
+    """
+
+    node: NodeOptions = field(default_factory=NodeOptions)
+    image_topic: str = "/camera/image_raw"
+    camera_info_topic: str = "/camera/camera_info"
+    imu_topic: str = "/imu/data"
+    speed_topic: str = ""
+    rotation_from_tf: bool = True
+    copy_inputs: bool = False
+    overwrite: bool = False
+
+
+@dataclass(frozen=True)
+class Summary:
+    """What ``process_bag`` did.
+
+    Attributes:
+        out_path: the output bag.
+        images: image messages read.
+        frames_processed: frames the engine processed.
+        frames_with_points: of those, frames with at least one point.
+        points: total points written.
+        heading_stamps_ns: (K,) int64 stamps of the frames with a heading.
+        headings: (K, 3) float64 unit headings (camera optical frame).
+        heading_sigma_rad: (K,) float64 1-sigma heading uncertainty, rad.
+        extrinsic_source: "option", "tf_static" or "default" (identity).
+        camera_to_imu_rotation_xyzw: the rotation used.
+        counts: pipeline totals (drops, skips, IMU problems...).
+        reasons: reasons for frames without points, with counts.
+        damage: one line when the input bag was truncated/corrupt (the readable part was
+            processed), else None.
+        elapsed_s: wall time, s.
+    """
+
+    out_path: Path
+    images: int
+    frames_processed: int
+    frames_with_points: int
+    points: int
+    heading_stamps_ns: npt.NDArray[np.int64]
+    headings: npt.NDArray[np.float64]
+    heading_sigma_rad: npt.NDArray[np.float64]
+    extrinsic_source: str
+    camera_to_imu_rotation_xyzw: tuple[float, float, float, float]
+    counts: dict[str, int]
+    reasons: dict[str, int]
+    damage: str | None
+    elapsed_s: float
+
+
+def _tf_rotation(
+    transforms: list[Any], imu_frame: str | None, camera_frame: str
+) -> tuple[float, float, float, float] | None:
+    """camera_to_imu rotation from /tf_static transforms (rosbags TransformStamped): the
+    transform IMU (parent) -> camera (child), or its inverse; None when absent."""
+
+    def strip(name: str) -> str:
+        return name.lstrip("/")
+
+    cam = strip(camera_frame)
+    imu = strip(imu_frame) if imu_frame else None
+    for tf in transforms:
+        parent, child = strip(tf.header.frame_id), strip(tf.child_frame_id)
+        q = tf.transform.rotation
+        xyzw = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+        if child == cam and (imu is None or parent == imu):
+            return tuple(float(v) for v in xyzw / np.linalg.norm(xyzw))  # type: ignore[return-value]
+        if parent == cam and imu is not None and child == imu:
+            inv = quat_xyzw_to_matrix(xyzw / np.linalg.norm(xyzw)).T
+            return tuple(float(v) for v in matrix_to_quat_xyzw(inv))  # type: ignore[return-value]
+    return None
+
+
+def _check_topics(bag: BagReader, opts: ProcessOptions) -> dict[str, str]:
+    topics = bag.topics
+    have = ", ".join(sorted(topics)) or "no topics"
+    wanted = {"image": opts.image_topic, "camera_info": opts.camera_info_topic}
+    if opts.imu_topic:
+        wanted["imu"] = opts.imu_topic
+    if opts.speed_topic:
+        wanted["speed"] = opts.speed_topic
+    expected = {
+        "image": IMAGE_TYPES,
+        "camera_info": ("sensor_msgs/msg/CameraInfo",),
+        "imu": ("sensor_msgs/msg/Imu",),
+        "speed": SPEED_TYPES,
+    }
+    for role, topic in wanted.items():
+        if topic not in topics:
+            raise ProcessError(f"{role} topic {topic} is not in bag {bag.path} (has: {have})")
+        msgtype = topics[topic].msgtype
+        if msgtype not in expected[role]:
+            raise ProcessError(
+                f"{role} topic {topic} has type {msgtype}, expected {' or '.join(expected[role])}"
+            )
+    return {topic: role for role, topic in wanted.items()}
+
+
+class _Progress:
+    def __init__(self, stream: TextIO | None, total: int) -> None:
+        self.stream = stream
+        self.total = max(total, 1)
+        self.tty = bool(stream is not None and stream.isatty())
+        self.last = 0.0
+        self.t0 = time.monotonic()
+
+    def __call__(self, done: int, frames: int, force: bool = False) -> None:
+        if self.stream is None:
+            return
+        now = time.monotonic()
+        if not force and now - self.last < (0.2 if self.tty else 5.0):
+            return
+        self.last = now
+        elapsed = now - self.t0
+        frac = done / self.total
+        eta = elapsed / frac - elapsed if frac > 0 else math.nan
+        bar = "#" * int(30 * frac)
+        text = f"{PROG}: [{bar:<30}] {100 * frac:5.1f}%  {frames} frames  {elapsed:.1f} s" + (
+            f", ~{eta:.0f} s left" if frac < 1 else ""
+        )
+        self.stream.write(("\r" + text + "\x1b[K") if self.tty else text + "\n")
+        if force and self.tty:
+            self.stream.write("\n")
+        self.stream.flush()
+
+
+def process_bag(
+    in_path: str | Path,
+    out_path: str | Path,
+    options: ProcessOptions | None = None,
+    progress: Callable[[int, int, bool], None] | TextIO | None = None,
+) -> Summary:
+    """Run the OWL pipeline over a bag and write the results (see the module docstring).
+
+    Args:
+        in_path: input rosbag2 directory or .mcap file.
+        out_path: output rosbag2 directory (MCAP).
+        options: what to read and the node options.
+        progress: a text stream for a progress bar (e.g. sys.stderr), or a callable
+            ``(messages_done, frames_processed, final)``, or None.
+
+    Returns:
+        A :class:`Summary`. A truncated/corrupt input is processed up to the damage, the
+        output written, and ``Summary.damage`` says what was wrong.
+
+    Raises:
+        BagError: input missing or not a bag, output exists (no overwrite).
+        ProcessError: a topic missing from the bag or of the wrong type.
+    """
+    t_start = time.monotonic()
+    opts = options if options is not None else ProcessOptions()
+    out = Path(out_path)
+    BagWriter(out, overwrite=opts.overwrite)  # refuse an existing output before reading
+    with BagReader(in_path, recover=True) as bag:
+        roles = _check_topics(bag, opts)
+        infos = bag.topics
+        read_topics = list(roles)
+        if TF_STATIC in infos and opts.rotation_from_tf:
+            read_topics.append(TF_STATIC)
+        copy = sorted(infos) if opts.copy_inputs else []
+        total = sum(infos[t].count for t in set(read_topics) | set(copy))
+        if callable(progress):
+            report = progress
+        else:
+            report = _Progress(progress, total)  # type: ignore[arg-type]
+        speed_source = "none"
+        if opts.speed_topic:
+            is_odom = infos[opts.speed_topic].msgtype == "nav_msgs/msg/Odometry"
+            speed_source = "odometry" if is_odom else "twist"
+        node_opts = replace(opts.node, speed_source=speed_source)
+        pipeline = Pipeline(node_opts)
+        classes = {t: message_class(infos[t].msgtype) for t in roles}
+        from rclpy.serialization import deserialize_message, serialize_message
+
+        transforms: list[Any] = []
+        imu_frame: str | None = None
+        extrinsic_source = "option" if not opts.rotation_from_tf else "default"
+        rotation = opts.node.engine.camera_to_imu_rotation_xyzw
+        decided = not opts.rotation_from_tf
+        stamps: list[int] = []
+        headings: list[npt.NDArray[np.float64]] = []
+        sigmas: list[float] = []
+        reasons: Counter[str] = Counter()
+        points = 0
+        frames = 0
+        done = 0
+        period_ns = round(node_opts.diagnostics_period_s * 1e9)
+        next_diag: int | None = None
+        damage: str | None = None
+
+        with BagWriter(out, overwrite=opts.overwrite) as writer:
+            writer.add_topic(POINTS_TOPIC, "sensor_msgs/msg/PointCloud2", "reliable")
+            writer.add_topic(HEADING_TOPIC, "geometry_msgs/msg/Vector3Stamped", "reliable")
+            writer.add_topic(DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", "reliable")
+            for topic in copy:
+                if topic not in (POINTS_TOPIC, HEADING_TOPIC, DIAGNOSTICS_TOPIC):
+                    writer.add_topic(topic, infos[topic].msgtype, infos[topic].qos_kind)
+            writer.set_custom_data(
+                "owl_process", repr(sorted((k, v) for k, v in to_values(node_opts).items()))
+            )
+
+            def emit(outputs: list[Output]) -> None:
+                nonlocal points, frames
+                for o in outputs:
+                    stamp = header_to_ns(o.header)
+                    frames += 1
+                    points += o.result.num_points
+                    writer.write_raw(POINTS_TOPIC, max(stamp, 0), serialize_message(o.cloud))
+                    if o.heading is not None and o.result.heading is not None:
+                        writer.write_raw(
+                            HEADING_TOPIC, max(stamp, 0), serialize_message(o.heading)
+                        )
+                        stamps.append(stamp)
+                        headings.append(np.asarray(o.result.heading, dtype=np.float64))
+                        sigmas.append(float(o.result.heading_sigma_rad))
+                    if not o.result.num_points:
+                        for reason in o.result.reasons or ("no points",):
+                            reasons[reason.split(" (")[0].split(":")[0]] += 1
+
+            def diagnostics(now_ns: int) -> None:
+                msg = records_to_msg(pipeline.diagnostics(now_ns), now_ns)
+                writer.write_raw(DIAGNOSTICS_TOPIC, max(now_ns, 0), serialize_message(msg))
+
+            def handle(raw: RawMessage) -> None:
+                nonlocal imu_frame, rotation, decided, extrinsic_source, next_diag
+                now = raw.log_time_ns
+                role = roles.get(raw.topic)
+                if raw.topic == TF_STATIC and not decided:
+                    transforms.extend(bag.deserialize(raw).transforms)
+                elif role is not None:
+                    msg = deserialize_message(raw.data, classes[raw.topic])
+                    if role == "imu":
+                        if imu_frame is None:
+                            imu_frame = msg.header.frame_id
+                        pipeline.add_imu(msg, now)
+                    elif role == "camera_info":
+                        if not decided:
+                            found = _tf_rotation(transforms, imu_frame, msg.header.frame_id)
+                            if found is not None:
+                                rotation, extrinsic_source = found, "tf_static"
+                                pipeline.reconfigure(
+                                    node_opts.with_values({"camera_to_imu_rotation_xyzw": found})
+                                )
+                            decided = True
+                        pipeline.add_camera_info(msg)
+                    elif role == "speed":
+                        pipeline.add_speed(msg)
+                    else:
+                        pipeline.add_image(msg, now)
+                if raw.topic in copy:
+                    writer.write_raw(raw.topic, now, raw.data)
+                emit(pipeline.poll(now))
+                if next_diag is None:
+                    next_diag = now + period_ns
+                elif now >= next_diag:
+                    diagnostics(now)
+                    next_diag = now + period_ns
+
+            last_ns = bag.start_ns
+            try:
+                for raw in bag.messages(sorted(set(read_topics) | set(copy))):
+                    handle(raw)
+                    last_ns = raw.log_time_ns
+                    done += 1
+                    report(done, frames, False)
+            except CorruptBagError as err:
+                damage = str(err)
+            if damage is None and bag.damage is not None:
+                damage = f"truncated or corrupt bag {bag.path}: {bag.damage}"
+            emit(pipeline.poll(last_ns, flush=True))
+            diagnostics(last_ns)
+            report(done, frames, True)
+            totals = dict(pipeline.totals)
+    return Summary(
+        out_path=out,
+        images=totals.get("images", 0),
+        frames_processed=frames,
+        frames_with_points=totals.get("frames_with_points", 0),
+        points=points,
+        heading_stamps_ns=np.asarray(stamps, dtype=np.int64),
+        headings=np.asarray(headings, dtype=np.float64).reshape(-1, 3),
+        heading_sigma_rad=np.asarray(sigmas, dtype=np.float64),
+        extrinsic_source=extrinsic_source,
+        camera_to_imu_rotation_xyzw=tuple(float(v) for v in rotation),  # type: ignore[arg-type]
+        counts=totals,
+        reasons=dict(reasons),
+        damage=damage,
+        elapsed_s=time.monotonic() - t_start,
+    )
+
+
+# ------------------------------------------------------------------------------ CLI
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage dump)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line interface."""
+    p = _Parser(
+        prog=PROG,
+        description="Run the OWL pipeline of node 'owl' over a bag (no DDS, deterministic) "
+        "and write owl/points, owl/heading and /diagnostics to an MCAP rosbag2.",
+    )
+    p.add_argument("in_bag", help="input rosbag2 directory or .mcap file")
+    p.add_argument("-o", "--output", required=True, help="output rosbag2 directory")
+    p.add_argument(
+        "--image-topic",
+        default=ProcessOptions.image_topic,
+        help="Image or CompressedImage topic (default %(default)s)",
+    )
+    p.add_argument(
+        "--camera-info-topic",
+        default=ProcessOptions.camera_info_topic,
+        help="CameraInfo topic (default %(default)s)",
+    )
+    p.add_argument(
+        "--imu-topic",
+        default=ProcessOptions.imu_topic,
+        help="Imu topic (default %(default)s; '' = none)",
+    )
+    p.add_argument(
+        "--speed-topic",
+        default="",
+        help="nav_msgs/Odometry or TwistStamped "
+        "topic: x y z in metres (default: none, x y z in seconds)",
+    )
+    p.add_argument(
+        "--camera-to-imu-rotation-xyzw",
+        metavar="X,Y,Z,W",
+        default=None,
+        help="camera-to-IMU rotation quaternion (default: from /tf_static, else identity)",
+    )
+    p.add_argument(
+        "--imu-time-offset",
+        type=float,
+        default=None,
+        metavar="S",
+        help="IMU stamp - camera stamp, seconds (default 0)",
+    )
+    p.add_argument(
+        "-p",
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME:=VALUE",
+        help="any node parameter (see config/owl.yaml), repeatable",
+    )
+    p.add_argument("--params-file", default=None, help="ROS 2 parameter YAML (node 'owl')")
+    p.add_argument(
+        "--copy-inputs", action="store_true", help="copy every input topic into the output bag"
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def _params_file(path: str) -> dict[str, Any]:
+    import yaml
+
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as err:
+        msg = f"cannot read --params-file {path}: {' '.join(str(err).split())}"
+        raise ProcessError(msg) from None
+    if not isinstance(data, dict):
+        raise ProcessError(f"--params-file {path}: expected a mapping of node names")
+    values: dict[str, Any] = {}
+    for key in ("/**", "owl", "/owl"):
+        section = data.get(key)
+        if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
+            values.update(section["ros__parameters"])
+    if not values:
+        raise ProcessError(f"--params-file {path}: no 'owl: ros__parameters:' section")
+    values.pop("use_sim_time", None)
+    return values
+
+
+def options_from_args(args: argparse.Namespace) -> ProcessOptions:
+    """ProcessOptions from parsed arguments; ProcessError/ParameterError on bad values."""
+    values: dict[str, Any] = {}
+    if args.params_file:
+        values.update(_params_file(args.params_file))
+    for item in args.param:
+        name, sep, text = item.partition(":=")
+        if not sep:
+            name, sep, text = item.partition("=")
+        if not sep or not name:
+            raise ProcessError(f"-p expects NAME:=VALUE, got {item!r}")
+        values[name] = parse_value(name, text)
+    if args.camera_to_imu_rotation_xyzw is not None:
+        try:
+            q = [float(v) for v in args.camera_to_imu_rotation_xyzw.split(",")]
+        except ValueError:
+            raise ProcessError(
+                "--camera-to-imu-rotation-xyzw must be 4 comma-separated numbers, got "
+                f"{args.camera_to_imu_rotation_xyzw!r}"
+            ) from None
+        values["camera_to_imu_rotation_xyzw"] = q
+    if args.imu_time_offset is not None:
+        values["imu_time_offset"] = args.imu_time_offset
+    node = build_options(values)
+    return ProcessOptions(
+        node=node,
+        image_topic=args.image_topic,
+        camera_info_topic=args.camera_info_topic,
+        imu_topic=args.imu_topic,
+        speed_topic=args.speed_topic,
+        rotation_from_tf="camera_to_imu_rotation_xyzw" not in values,
+        copy_inputs=args.copy_inputs,
+        overwrite=args.overwrite,
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``owl_process``; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    try:
+        opts = options_from_args(args)
+    except ParameterError as err:
+        for line in err.lines:
+            print(f"{PROG}: error: {line}", file=sys.stderr)
+        return 2
+    except ProcessError as err:
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        return 2
+    try:
+        summary = process_bag(
+            args.in_bag, args.output, opts, progress=None if args.quiet else sys.stderr
+        )
+    except (BagError, ProcessError, ParameterError) as err:
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted, nothing written", file=sys.stderr)
+        return 130
+    if summary.damage is not None:
+        print(
+            f"{PROG}: error: {summary.damage} (the {summary.frames_processed} frames before "
+            f"the damage were written to {summary.out_path})",
+            file=sys.stderr,
+        )
+        return 1
+    if not args.quiet:
+        print(
+            f"{PROG}: wrote {summary.out_path}: {summary.frames_processed} frames, "
+            f"{summary.frames_with_points} with points, {len(summary.headings)} headings, "
+            f"{summary.points} points in {summary.elapsed_s:.1f} s (extrinsic from "
+            f"{summary.extrinsic_source})",
+            file=sys.stderr,
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
