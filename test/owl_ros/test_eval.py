@@ -1,0 +1,180 @@
+"""owl_eval: metric functions, and deliberately wrong results scored with exactly their error."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from bags import scenarios
+from bags.make_bag import write_bag
+from bags.scenarios import SimOptions
+from bags.sensors import ImuOptions
+from owl_core.geometry import so3_exp
+from owl_core.types import FrameResult, PointFlag
+from owl_ros import eval as ev
+
+BIAS = (0.004, -0.002, 0.003)
+BIAS_ERROR = np.array([0.0006, 0.0, -0.0008])  # |.| = 0.001 rad/s
+HEADING_OFFSET_DEG = 10.0
+RANGE_FACTOR = 1.1
+
+
+def test_heading_error_is_the_angle_between_directions():
+    v = np.array([0.3, -0.2, 2.0])
+    axis = np.cross(v, [1.0, 0.0, 0.0])
+    for deg in (0.01, 1.0, 10.0, 90.0, 179.0):
+        rot = so3_exp(axis / np.linalg.norm(axis) * math.radians(deg))
+        got = ev.heading_error_deg(5.0 * rot @ v, v)  # the length does not matter
+        assert got == pytest.approx(deg, abs=1e-9)
+    assert np.isnan(ev.heading_error_deg(np.zeros(3), v))
+    with pytest.raises(ev.EvalError, match=r"\(2,\)"):
+        ev.heading_error_deg(np.zeros(2), v)
+
+
+def test_sampling_coverage_and_relative_error():
+    img = np.arange(12, dtype=np.float32).reshape(3, 4)
+    px = np.array([[0.4, 0.4], [2.6, 1.2], [3.49, 2.49], [-0.6, 0.0], [np.nan, 1.0]])
+    np.testing.assert_array_equal(ev.sample_nearest(img, px)[:3], [0, 7, 11])
+    assert np.isnan(ev.sample_nearest(img, px)[3:]).all()
+    # 2 of the 4 cells of a 2x2 grid over a 100 x 50 image
+    cells = ev.coverage([[10, 10], [20, 5], [90, 40]], 100, 50, grid=(2, 2))
+    assert cells == pytest.approx(0.5)
+    np.testing.assert_allclose(
+        ev.relative_error([1.1, 0.9, np.nan], [1.0, 1.0, 1.0])[:2], [0.1, -0.1]
+    )
+
+
+@pytest.fixture(scope="module")
+def truth_bag(tmp_path_factory):
+    """A tiny mover bag (160 x 120, 10 frames) with a known gyro bias, and its simulation."""
+    sim = scenarios.get("mover").simulate(
+        SimOptions(seconds=0.3, width=160, height=120, imu=ImuOptions(gyro_bias=BIAS))
+    )
+    path = tmp_path_factory.mktemp("eval") / "truth"
+    custom = {"owl_make_bag": json.dumps({"scenario": "mover", "gyro_bias": list(BIAS)})}
+    write_bag(sim, path, custom=custom)
+    return path, sim, list(sim.frames())
+
+
+def wrong_result(frame, rng):
+    """A FrameResult wrong by known amounts: heading rotated 10 deg, r/|t| x 1.1, bias off."""
+    v = frame.velocity
+    axis = np.cross(v, [0.0, 1.0, 0.0])
+    heading = so3_exp(axis / np.linalg.norm(axis) * math.radians(HEADING_OFFSET_DEG)) @ v
+    h, w = frame.range_m.shape
+    px = np.c_[rng.integers(0, w, 60), rng.integers(0, h, 60)].astype(np.float64)
+    moving = np.argwhere(frame.mask)[:, ::-1].astype(np.float64)  # (u, v) on the car
+    px = np.concatenate([px, moving[:: max(1, moving.shape[0] // 10)]])
+    iu, iv = px[:, 0].astype(int), px[:, 1].astype(int)
+    ros = frame.range_m[iv, iu].astype(np.float64) / np.linalg.norm(v) * RANGE_FACTOR
+    on_car = frame.mask[iv, iu]
+    flags = np.where(on_car, PointFlag.MOVING, 0).astype(np.uint8)
+    flags[np.flatnonzero(on_car)[::2]] = 0  # half the car points missed: recall known
+    keep = np.isfinite(ros)
+    n = int(keep.sum())
+    z3, z4 = np.zeros((n, 3)), np.zeros((n, 4))
+    return (
+        FrameResult(
+            stamp_ns=frame.stamp_ns,
+            pixels=px[keep],
+            bearings=z3,
+            looming=np.zeros(n),
+            omega=z3,
+            rot=z4,
+            range_over_speed=ros[keep],
+            points=z3,
+            quality=np.ones(n),
+            ids=np.arange(n, dtype=np.uint32),
+            flags=flags[keep],
+            heading=heading / np.linalg.norm(heading),
+            heading_sigma_rad=0.01,
+            gyro_bias=np.asarray(BIAS) + BIAS_ERROR,
+        ),
+        on_car[keep],
+        flags[keep],
+    )
+
+
+def test_wrong_result_is_scored_with_exactly_its_error(truth_bag, tmp_path):
+    path, _, frames = truth_bag
+    rng = np.random.default_rng(0)
+    results, tp, fn = [], 0, 0
+    for f in frames:
+        res, on_car, flags = wrong_result(f, rng)
+        results.append(res)
+        tp += int(np.count_nonzero(on_car & (flags > 0)))
+        fn += int(np.count_nonzero(on_car & (flags == 0)))
+    assert tp > 0 and fn > 0  # the car is in view
+    result = tmp_path / "result"
+    assert ev.write_result_bag(result, results) == len(frames)
+    out = ev.evaluate(result, path)
+    s = out.summary
+    assert s["frames"] == s["translating_frames"] == s["heading_frames"] == len(frames)
+    # Vector3 is float64: the angle is exact to rounding
+    assert s["heading_deg_median"] == pytest.approx(HEADING_OFFSET_DEG, abs=1e-9)
+    assert s["heading_deg_max"] == pytest.approx(HEADING_OFFSET_DEG, abs=1e-9)
+    # r/|t| travels as float32: relative rounding 2^-24 on est and on the range image
+    assert s["range_rel_median"] == pytest.approx(RANGE_FACTOR - 1, abs=1e-6)
+    assert s["range_rel_p90"] == pytest.approx(RANGE_FACTOR - 1, abs=1e-6)
+    # only static points are scored: the car's are excluded
+    assert s["range_points"] == sum(r.num_points for r in results) - tp - fn
+    assert s["moving_precision"] == pytest.approx(1.0)
+    assert s["moving_recall"] == pytest.approx(tp / (tp + fn))
+    assert s["bias_error_final_rad_s"] == pytest.approx(0.001, abs=1e-12)
+    assert s["points_per_frame"] == pytest.approx(np.mean([r.num_points for r in results]))
+
+
+def test_cli_json_schema_and_text(truth_bag, tmp_path, capsys):
+    path, _, frames = truth_bag
+    rng = np.random.default_rng(1)
+    result = tmp_path / "result"
+    ev.write_result_bag(result, [wrong_result(f, rng)[0] for f in frames[:-2]])
+    assert ev.main([str(result), "--truth", str(path), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert set(doc) == {"summary", "notes", "frames"}
+    keys = {
+        "frames",
+        "heading_deg_median",
+        "heading_deg_p90",
+        "range_rel_median",
+        "range_rel_p90",
+        "points_per_frame",
+        "coverage_mean",
+        "moving_precision",
+        "moving_recall",
+        "bias_error_final_rad_s",
+        "heading_availability",
+        "truth_gyro_bias_rad_s",
+    }
+    assert keys <= set(doc["summary"])
+    assert len(doc["frames"]) == len(frames)
+    # the two frames without output count as frames without heading
+    assert doc["summary"]["heading_availability"] == pytest.approx((len(frames) - 2) / len(frames))
+    assert doc["frames"][-1]["has_heading"] is False
+    assert doc["frames"][0]["heading_deg"] == pytest.approx(HEADING_OFFSET_DEG, abs=1e-9)
+    assert ev.main([str(result), "--truth", str(path), "--per-frame"]) == 0
+    text = capsys.readouterr().out
+    assert "heading error median / p90" in text and "10 deg" in text
+
+
+def test_cli_errors_are_one_line(truth_bag, tmp_path, capsys):
+    path, _, _ = truth_bag
+    assert ev.main([str(tmp_path / "missing"), "--truth", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "missing" in err and "Traceback" not in err
+    # the truth bag has no /owl/points: named in the error
+    assert ev.main([str(path), "--truth", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "/owl/points" in err
+    # a result bag is no truth bag
+    result = tmp_path / "result"
+    ev.write_result_bag(result, [])
+    assert ev.main([str(result), "--truth", str(result)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "/ground_truth/twist" in err
+    with pytest.raises(SystemExit) as exc:
+        ev.main(["--help"])
+    assert exc.value.code == 0
