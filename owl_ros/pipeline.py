@@ -598,7 +598,13 @@ class Pipeline:
             proc_level = Level.WARN
         if dropped or c["time_jumps"]:
             proc_level = max(proc_level, Level.WARN)
-        if c["frames_with_points"]:
+        if c["processed"] == 0:
+            if c["images"] == 0:
+                message = "no frames processed: no images received"
+            else:
+                why = self._last_empty_reason or "waiting for IMU/camera_info"
+                message = f"no frames processed: {why}"
+        elif c["frames_with_points"]:
             message = (
                 f"{rate('processed'):.1f} frames/s, "
                 f"{float(np.mean(win.points)) if win.points else 0:.0f} points/frame"

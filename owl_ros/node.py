@@ -1,0 +1,331 @@
+"""Node ``owl`` (executable ``owl_node``): images + IMU in, OWL point cloud and heading out.
+
+A thin node: everything is created in ``__init__``; the subscription callbacks only hand
+messages to an :class:`~owl_ros.pipeline.Inbox` (they never block); one worker thread owns
+the :class:`~owl_ros.pipeline.Pipeline` (engine, IMU buffer, queue), processes frames and
+publishes. Topics, parameters and diagnostics are described in ``docs`` / contract.md and
+``config/owl.yaml``; every parameter is declared from the one table in
+:mod:`owl_ros.params`.
+
+Subscriptions (best effort, keep last: they match drivers and replayed bags): ``image``
+(or ``image/compressed`` with ``image_transport: compressed``), ``camera_info``, ``imu``
+and, with ``speed_source`` odometry/twist, ``speed_topic``. Publications (reliable, keep
+last 10): ``owl/points``, ``owl/heading``, ``/diagnostics`` and ``owl/debug_image`` (built
+only while someone subscribes). QoS-incompatible peers are reported in ``/diagnostics``.
+
+Time: header stamps only for the maths; the node's clock (``use_sim_time`` honoured) only
+stamps diagnostics and measures stamp -> publication latency; waits are on a monotonic
+clock.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TwistStamped, Vector3Stamped
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu, PointCloud2
+
+from msg_adapters.diagnostics import records_to_msg
+from msg_adapters.image import array_to_image
+from msg_adapters.stamps import header_to_ns
+from owl_ros.params import PARAMS, ParameterError, build_options, descriptor, validate
+from owl_ros.pipeline import Inbox, Output, Pipeline, draw_debug
+
+PROG = "owl_node"
+NODE_NAME = "owl"
+#: depth of the best-effort subscriptions (IMU deeper: 400 Hz bursts while busy).
+IMAGE_DEPTH = 5
+IMU_DEPTH = 200
+#: depth of the reliable publications.
+PUB_DEPTH = 10
+#: longest worker sleep between checks, s.
+WORKER_TICK_S = 0.05
+
+
+def _sensor_qos(depth: int) -> QoSProfile:
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.BEST_EFFORT
+    )
+
+
+def _reliable_qos() -> QoSProfile:
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=PUB_DEPTH, reliability=ReliabilityPolicy.RELIABLE
+    )
+
+
+def _param_value(value: Any) -> Any:
+    """A parameter value as plain Python (double arrays come as array.array)."""
+    if hasattr(value, "tolist") or isinstance(value, list | tuple):
+        return list(value)
+    return value
+
+
+class OwlNode(Node):
+    """The OWL node (see the module docstring).
+
+    Raises:
+        ParameterError: invalid parameter values at start (one line per value).
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        values, lines = self._declare()
+        lines += validate(values, unknown_ok=True) if not lines else []
+        if lines:
+            raise ParameterError(lines)
+        self.options = build_options(values)
+        self._values = values
+        self._lock = threading.Lock()
+        self._inbox = Inbox(self.options.queue_size)
+        self._pipeline = Pipeline(self.options)
+        self._stop = threading.Event()
+
+        sensor = _sensor_qos(IMAGE_DEPTH)
+        if self.options.image_transport == "compressed":
+            self.create_subscription(
+                CompressedImage, "image/compressed", self._on_image, sensor,
+                event_callbacks=self._sub_events("image/compressed"),
+            )  # fmt: skip
+        else:
+            self.create_subscription(
+                Image, "image", self._on_image, sensor, event_callbacks=self._sub_events("image")
+            )
+        self.create_subscription(
+            CameraInfo, "camera_info", self._on_camera_info, sensor,
+            event_callbacks=self._sub_events("camera_info"),
+        )  # fmt: skip
+        self.create_subscription(
+            Imu, "imu", self._on_imu, _sensor_qos(IMU_DEPTH),
+            event_callbacks=self._sub_events("imu"),
+        )  # fmt: skip
+        if self.options.speed_source != "none":
+            kind = Odometry if self.options.speed_source == "odometry" else TwistStamped
+            topic = self.options.speed_topic
+            self.create_subscription(
+                kind, topic, self._on_speed, _sensor_qos(IMAGE_DEPTH),
+                event_callbacks=self._sub_events(topic),
+            )  # fmt: skip
+
+        reliable = _reliable_qos()
+        self._points_pub = self.create_publisher(
+            PointCloud2, "owl/points", reliable, event_callbacks=self._pub_events("owl/points")
+        )
+        self._heading_pub = self.create_publisher(
+            Vector3Stamped, "owl/heading", reliable,
+            event_callbacks=self._pub_events("owl/heading"),
+        )  # fmt: skip
+        self._diag_pub = self.create_publisher(
+            DiagnosticArray, "/diagnostics", reliable,
+            event_callbacks=self._pub_events("/diagnostics"),
+        )  # fmt: skip
+        self._debug_pub = None
+        if self.options.publish_debug_image:
+            self._debug_pub = self.create_publisher(
+                Image, "owl/debug_image", reliable,
+                event_callbacks=self._pub_events("owl/debug_image"),
+            )  # fmt: skip
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._worker = threading.Thread(target=self._run, name="owl-worker", daemon=True)
+        self._worker.start()
+
+    # ------------------------------------------------------------------ setup helpers
+
+    def _declare(self) -> tuple[dict[str, Any], list[str]]:
+        values: dict[str, Any] = {}
+        lines: list[str] = []
+        for p in PARAMS:
+            default = list(p.default) if p.kind == "double_array" else p.default
+            try:
+                param = self.declare_parameter(p.name, default, descriptor(p))
+            except ParameterException as err:
+                lines.append(f"parameter {p.name}: {' '.join(str(err).split())}")
+                continue
+            except (TypeError, ValueError) as err:
+                # rclpy: an override of the wrong type (e.g. an int for a double array)
+                lines.append(
+                    f"parameter {p.name}: wrong type ({' '.join(str(err).split())}); "
+                    f"expected {p.kind}"
+                )
+                continue
+            values[p.name] = _param_value(param.value)
+        return values, lines
+
+    def _sub_events(self, topic: str) -> SubscriptionEventCallbacks:
+        return SubscriptionEventCallbacks(
+            incompatible_qos=lambda info: self._qos_event("subscription", topic, info)
+        )
+
+    def _pub_events(self, topic: str) -> PublisherEventCallbacks:
+        return PublisherEventCallbacks(
+            incompatible_qos=lambda info: self._qos_event("publication", topic, info)
+        )
+
+    def _qos_event(self, side: str, topic: str, info: Any) -> None:
+        policy = getattr(info.last_policy_kind, "name", str(info.last_policy_kind))
+        text = (
+            f"{side} {topic}: incompatible QoS with a peer (policy {policy}, "
+            f"{info.total_count} total)"
+        )
+        self.get_logger().warning(text)
+        self._inbox.put("qos", text, time.monotonic_ns())
+
+    # ------------------------------------------------------------------ callbacks
+
+    def _on_image(self, msg: Any) -> None:
+        self._inbox.put_image(msg, time.monotonic_ns())
+
+    def _on_camera_info(self, msg: Any) -> None:
+        self._inbox.put("camera_info", msg, time.monotonic_ns())
+
+    def _on_imu(self, msg: Any) -> None:
+        self._inbox.put("imu", msg, time.monotonic_ns())
+
+    def _on_speed(self, msg: Any) -> None:
+        self._inbox.put("speed", msg, time.monotonic_ns())
+
+    def _on_set_parameters(self, params: Sequence[Any]) -> SetParametersResult:
+        changes = {p.name: _param_value(p.value) for p in params}
+        known = {k: v for k, v in changes.items() if any(q.name == k for q in PARAMS)}
+        if not known:
+            return SetParametersResult(successful=True)
+        with self._lock:
+            merged = {**self._values, **known}
+            lines = validate(merged, unknown_ok=True)
+            if lines:
+                return SetParametersResult(successful=False, reason="; ".join(lines))
+            try:
+                options = build_options(merged)
+            except ParameterError as err:
+                return SetParametersResult(successful=False, reason="; ".join(err.lines))
+            self._values = merged
+            self.options = options
+        self._inbox.put("options", options, time.monotonic_ns())
+        return SetParametersResult(successful=True)
+
+    # ------------------------------------------------------------------ worker
+
+    def _run(self) -> None:
+        diag_period_ns = round(self.options.diagnostics_period_s * 1e9)
+        next_diag = time.monotonic_ns() + diag_period_ns
+        self._pipeline.start_window(time.monotonic_ns())
+        while not self._stop.is_set():
+            now = time.monotonic_ns()
+            deadline = self._pipeline.next_deadline_ns()
+            timeout = WORKER_TICK_S
+            if deadline is not None:
+                timeout = min(timeout, max((deadline - now) * 1e-9, 0.001))
+            self._inbox.wait(min(timeout, max((next_diag - now) * 1e-9, 0.001)))
+            if self._stop.is_set():
+                break
+            try:
+                self._step()
+                now = time.monotonic_ns()
+                if now >= next_diag:
+                    diag_period_ns = round(self.options.diagnostics_period_s * 1e9)
+                    next_diag = now + diag_period_ns
+                    self._publish_diagnostics(now)
+            except Exception as err:  # keep running whatever one message did
+                self.get_logger().error(f"worker: {type(err).__name__}: {err}")
+
+    def _step(self) -> None:
+        other, images, dropped = self._inbox.drain()
+        pipeline = self._pipeline
+        for kind, msg, arrival in other:
+            if kind == "imu":
+                pipeline.add_imu(msg, arrival)
+            elif kind == "camera_info":
+                pipeline.add_camera_info(msg)
+            elif kind == "speed":
+                pipeline.add_speed(msg)
+            elif kind == "options":
+                pipeline.reconfigure(msg)
+            elif kind == "qos":
+                pipeline.note_qos_event(msg)
+        for msg, arrival in images:
+            pipeline.add_image(msg, arrival)
+        pipeline.count_dropped(dropped)
+        for out in pipeline.poll(time.monotonic_ns()):
+            self._publish(out)
+
+    def _publish(self, out: Output) -> None:
+        self._points_pub.publish(out.cloud)
+        if out.heading is not None:
+            self._heading_pub.publish(out.heading)
+        done = time.monotonic_ns()
+        stamp_latency = (self.get_clock().now().nanoseconds - header_to_ns(out.header)) * 1e-9
+        self._pipeline.record_latency((done - out.arrival_ns) * 1e-9, stamp_latency)
+        pub = self._debug_pub
+        if pub is not None and pub.get_subscription_count() > 0:
+            picture = draw_debug(out.image, out.result, self._pipeline.camera)
+            pub.publish(array_to_image(picture, "bgr8", header=out.header))
+
+    def _publish_diagnostics(self, now_mono_ns: int) -> None:
+        records = self._pipeline.diagnostics(now_mono_ns)
+        stamp = self.get_clock().now().nanoseconds
+        self._diag_pub.publish(records_to_msg(records, max(stamp, 0)))
+
+    def close(self) -> None:
+        """Stop the worker thread (call before destroy_node)."""
+        self._stop.set()
+        self._inbox.wake()
+        if self._worker.is_alive():
+            self._worker.join(timeout=5.0)
+
+
+def _help() -> str:
+    lines = [
+        f"usage: {PROG} [--ros-args -p NAME:=VALUE ... --params-file FILE -r FROM:=TO ...]",
+        "",
+        "OWL node 'owl': subscribes image (or image/compressed), camera_info, imu; publishes",
+        "owl/points, owl/heading, /diagnostics, owl/debug_image. Parameters:",
+    ]
+    for p in PARAMS:
+        ro = ", read-only" if p.read_only else ""
+        rng = p.constraint_text()
+        lines.append(f"  {p.name} ({p.kind}, default {p.default!r}{ro}) {rng}")
+        lines.append(f"      {p.description}")
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``owl_node``; returns the exit status (0 after SIGINT/SIGTERM)."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    own = args[: args.index("--ros-args")] if "--ros-args" in args else args
+    if "-h" in own or "--help" in own:
+        print(_help())
+        return 0
+    rclpy.init(args=[PROG, *args])
+    try:
+        node = OwlNode()
+    except ParameterError as err:
+        for line in err.lines:
+            print(f"{PROG}: error: {line}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
