@@ -231,6 +231,19 @@ class TrackFit:
     valid: BoolArray
 
 
+def _small_rotation(a: FloatArray, b: FloatArray) -> FloatArray:
+    """(3, 3) rotation taking unit vector a onto unit vector b about a x b."""
+    axis = motion.cross(a, b)
+    sin = float(np.linalg.norm(axis))
+    cos = float(a @ b)
+    if sin < 1e-15:
+        return np.eye(3)
+    k = axis / sin
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    out: FloatArray = np.eye(3) + sin * kx + (1.0 - cos) * (kx @ kx)
+    return out
+
+
 def fit_tracks(bearings: FloatArray, tau_s: FloatArray, mask: BoolArray, order: int) -> TrackFit:
     """Weighted polynomial fit of bearing against time per track (vectorised).
 
@@ -327,6 +340,9 @@ class OwlEngine:
         self._rng = np.random.default_rng(opts.seed)
         self._last_stamp: int | None = None
         self._last_heading: FloatArray | None = None
+        # recent fused headings: (stamp_ns, heading at its fit reference time, that time
+        # relative to stamp_ns in s); used to bring the heading to the current stamp
+        self._heading_history: list[tuple[int, FloatArray, float]] = []
         self.frames = 0
 
     # ------------------------------------------------------------------ inputs
@@ -373,6 +389,7 @@ class OwlEngine:
         self._bias.reset()
         self._last_stamp = None
         self._last_heading = None
+        self._heading_history = []
         self._rng = np.random.default_rng(self.options.seed)
 
     def _soft_reset(self) -> None:
@@ -380,6 +397,52 @@ class OwlEngine:
         self._tracker.reset()
         self._last_stamp = None
         self._last_heading = None
+        self._heading_history = []
+
+    def _heading_now(
+        self,
+        stamp: int,
+        heading_ref: FloatArray,
+        tau_ref: float,
+        sigma: float,
+        stamps: npt.NDArray[np.int64],
+        rotations: FloatArray,
+    ) -> tuple[FloatArray, float]:
+        """Bring the fused heading from its fit reference time to ``stamp``.
+
+        The heading refers to the time centroid of the track fits (about half a fit window
+        ago); on a curving path it has turned since. A straight line through the last
+        headings (each rotated into the current camera frame with the gyro) against time,
+        evaluated at the current stamp, removes that lag. Returns (heading, 1-sigma rad).
+        """
+        opts = self.options
+        index = {int(s): k for k, s in enumerate(stamps) if s >= 0}
+        times = [tau_ref]
+        vectors = [heading_ref]
+        for old_stamp, old_heading, old_tau in self._heading_history:
+            k = index.get(old_stamp)
+            if k is None or k == 0:
+                continue
+            times.append((old_stamp - stamp) * 1e-9 + old_tau)
+            vectors.append(rotations[k] @ old_heading)
+        kept = [item for item in self._heading_history if item[0] in index and item[0] != stamp]
+        self._heading_history = [(stamp, heading_ref, tau_ref), *kept[: opts.fit_frames - 2]]
+        if len(times) < 3:
+            return heading_ref, sigma
+        t = np.asarray(times)
+        h = np.asarray(vectors)
+        t_mean = float(t.mean())
+        sxx = float(np.sum((t - t_mean) ** 2))
+        if sxx <= 0:
+            return heading_ref, sigma
+        slope = ((t - t_mean) @ h) / sxx
+        now = h.mean(axis=0) - slope * t_mean
+        norm = float(np.linalg.norm(now))
+        if not norm > 0:
+            return heading_ref, sigma
+        # prediction variance of a straight-line fit at t = 0, each heading +-sigma
+        factor = 1.0 / t.size + t_mean**2 / sxx
+        return now / norm, sigma * math.sqrt(max(factor, 1.0))
 
     # ------------------------------------------------------------------ process
 
@@ -544,9 +607,13 @@ class OwlEngine:
             reasons.append(est.reason)
             dropped["no_translation" if not est.translating else "no_heading"] = idx.size
             self._last_heading = None
+            self._heading_history = []
             return finish()
-        heading = est.heading
-        self._last_heading = heading
+        heading_ref = est.heading
+        self._last_heading = heading_ref
+        heading, heading_sigma = self._heading_now(
+            stamp, heading_ref, float(np.median(tau_ref)), est.heading_sigma_rad, stamps, rotations
+        )
         # remove the leftover rotation found jointly with the heading
         f = f + motion.cross(est.rotation_error, e)
 
@@ -578,7 +645,7 @@ class OwlEngine:
         route = motion.looming_from_heading(
             e,
             omega,
-            heading,
+            heading_ref,
             omega_sigma=f_sigma,
             heading_sigma=est.heading_sigma_rad,
             min_sin=opts.heading_min_sin,
@@ -597,12 +664,17 @@ class OwlEngine:
         at_ref = motion.owl_quantities(e, fused.looming, omega, min_tor=opts.min_tor)
         # Bring each point from its fit's reference time to the current stamp: under a
         # constant relative velocity the scaled point moves by -heading per second.
-        point_now = at_ref.points + at_ref.heading * tau_ref[:, None]
+        # The fused heading turned from heading_ref to heading meanwhile (a curving path);
+        # turn every point's heading with it (trapezoid rule for the displacement).
+        turn = _small_rotation(heading_ref, heading)
+        h_ref_i = np.where(at_ref.valid[:, None], at_ref.heading, 0.0)
+        h_now_i = h_ref_i @ turn.T
+        point_now = at_ref.points + 0.5 * (h_ref_i + h_now_i) * tau_ref[:, None]
         ros_now = np.linalg.norm(point_now, axis=1)
         ahead = np.einsum("ni,ni->n", point_now, e_now) > 0
         ok_now = at_ref.valid & ahead & (ros_now > 0)
         safe_ros = np.where(ok_now, ros_now, 1.0)
-        h_i = np.where(ok_now[:, None], at_ref.heading, 0.0)
+        h_i = np.where(ok_now[:, None], h_now_i, 0.0)
         looming_now = np.einsum("ni,ni->n", h_i, e_now) / safe_ros
         omega_now = motion.cross(e_now, h_i) / safe_ros[:, None]
         quantities = motion.owl_quantities(e_now, looming_now, omega_now, min_tor=opts.min_tor)
@@ -650,7 +722,7 @@ class OwlEngine:
             ids=ids[keep].astype(np.uint32),
             flags=flags[keep].astype(np.uint8),
             heading=heading.copy(),
-            heading_sigma_rad=float(est.heading_sigma_rad),
+            heading_sigma_rad=heading_sigma,
             gyro_bias=self._bias.bias.copy(),
             timings=timings,
             reasons=tuple(reasons),
