@@ -37,6 +37,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu, PointCloud2
+from visualization_msgs.msg import Marker
 
 from msg_adapters.diagnostics import records_to_msg
 from msg_adapters.image import array_to_image
@@ -51,6 +52,8 @@ IMAGE_DEPTH = 5
 IMU_DEPTH = 200
 #: depth of the reliable publications.
 PUB_DEPTH = 10
+#: length of the owl/heading_marker arrow, m (RViz).
+MARKER_LENGTH = 5.0
 #: longest worker sleep between checks, s.
 WORKER_TICK_S = 0.05
 
@@ -65,6 +68,25 @@ def _reliable_qos() -> QoSProfile:
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=PUB_DEPTH, reliability=ReliabilityPolicy.RELIABLE
     )
+
+
+def heading_marker(heading: Any, header: Any) -> Any:
+    """visualization_msgs/Marker: an arrow from the camera along the heading (for RViz,
+    which has no Vector3Stamped display)."""
+    from geometry_msgs.msg import Point
+
+    marker = Marker(header=header, ns="owl_heading", id=0, type=Marker.ARROW)
+    marker.action = Marker.ADD
+    tip = Point(
+        x=float(heading[0]) * MARKER_LENGTH,
+        y=float(heading[1]) * MARKER_LENGTH,
+        z=float(heading[2]) * MARKER_LENGTH,
+    )
+    marker.points = [Point(), tip]
+    marker.pose.orientation.w = 1.0
+    marker.scale.x, marker.scale.y, marker.scale.z = 0.08, 0.2, 0.3
+    marker.color.g, marker.color.a = 1.0, 1.0
+    return marker
 
 
 def _param_value(value: Any) -> Any:
@@ -138,6 +160,7 @@ class OwlNode(Node):
                 Image, "owl/debug_image", reliable,
                 event_callbacks=self._pub_events("owl/debug_image"),
             )  # fmt: skip
+        self._marker_pub = self.create_publisher(Marker, "owl/heading_marker", reliable)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._worker = threading.Thread(target=self._run, name="owl-worker", daemon=True)
         self._worker.start()
@@ -268,6 +291,8 @@ class OwlNode(Node):
         done = time.monotonic_ns()
         stamp_latency = (self.get_clock().now().nanoseconds - header_to_ns(out.header)) * 1e-9
         self._pipeline.record_latency((done - out.arrival_ns) * 1e-9, stamp_latency)
+        if out.result.heading is not None and self._marker_pub.get_subscription_count() > 0:
+            self._marker_pub.publish(heading_marker(out.result.heading, out.header))
         pub = self._debug_pub
         if pub is not None and pub.get_subscription_count() > 0:
             picture = draw_debug(out.image, out.result, self._pipeline.camera)
