@@ -63,16 +63,6 @@ METHODS = ("owl", "cv-5pt", "cv-gyro")
 #: Bias magnitude of the biased rows, rad/s, along (1, 1, 1)/sqrt(3) in the IMU frame.
 BIAS = 0.01
 #: Scenarios without independently moving objects and with translation (pooled accuracy).
-#: Engine stage keys in pipeline order, as printed ("lk" and "detect" are parts of "track").
-STAGE_LABELS = (
-    ("track", "track"),
-    ("lk", "(LK"),
-    ("detect", "detect)"),
-    ("integrate", "integrate"),
-    ("heading", "heading"),
-    ("looming", "looming"),
-    ("total", "total"),
-)
 STATIC = ("cube", "scaled", "accel", "turn", "street", "receding")
 
 
@@ -464,6 +454,18 @@ def _cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+def _stages_text(ms: dict[str, float]) -> str:
+    """ "track 8.9 (LK 7.1, detect 1.4), integrate 2.2, ..." from per-stage milliseconds."""
+    parts = []
+    if "track" in ms:
+        sub = [
+            f"{label} {ms[k]:.1f}" for k, label in (("lk", "LK"), ("detect", "detect")) if k in ms
+        ]
+        parts.append(f"track {ms['track']:.1f}" + (f" ({', '.join(sub)})" if sub else ""))
+    parts += [f"{k} {ms[k]:.1f}" for k in ("integrate", "heading", "looming", "total") if k in ms]
+    return ", ".join(parts)
+
+
 def _f(x: Any, fmt: str = ".2f", scale: float = 1.0) -> str:
     return "n/a" if x is None else format(x * scale, fmt)
 
@@ -506,8 +508,7 @@ def report_lines(doc: dict[str, Any]) -> list[str]:
     lines += [
         "",
         "time per frame (ms; tracking shared by all methods):",
-        "  OWL stages: "
-        + ", ".join(f"{label} {stage_ms[k]:.1f}" for k, label in STAGE_LABELS if k in stage_ms),
+        "  OWL stages: " + _stages_text(stage_ms),
         f"  estimation: OWL {owl_est:.1f}, "
         f"cv-5pt {doc['baseline_estimate_ms_per_frame']:.1f}, "
         f"cv-gyro {doc['baseline_gyro_estimate_ms_per_frame']:.1f}",

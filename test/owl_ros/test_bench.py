@@ -1,0 +1,102 @@
+"""owl_bench on a tiny profile: schema, and the pooled numbers are owl_eval's numbers."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from owl_core.geometry import so3_exp
+from owl_ros import bench
+from owl_ros.eval import heading_error_deg, score_frame, summarize
+
+TINY = bench.Profile(
+    "tiny", 160, 120, 0.4, 120, (bench.Case("street"), bench.Case("street", bench.BIAS))
+)
+
+REQUIRED = {
+    "owl_fps": float,
+    "baseline_fps": float,
+    "estimation_speedup": float,
+    "owl_heading_deg_median": float,
+    "baseline_heading_deg_median": float,
+    "owl_range_rel_median": float,
+    "baseline_range_rel_median": float,
+    "features_per_frame": float,
+    "image_size": str,
+}
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("cache")
+    return bench.run_bench(TINY, cache), cache
+
+
+def test_json_schema(tiny):
+    doc, cache = tiny
+    for key, kind in REQUIRED.items():
+        assert isinstance(doc[key], kind), key
+    assert doc["image_size"] == "160x120"
+    assert doc["owl_fps"] > 0 and doc["baseline_fps"] > 0 and doc["estimation_speedup"] > 0
+    assert 0 < doc["features_per_frame"] <= TINY.features
+    assert [c["case"] for c in doc["cases"]] == ["street", "street+bias"]
+    for c in doc["cases"]:
+        assert set(c["methods"]) == {"owl", "cv-5pt", "cv-gyro"}
+        assert c["frames"] == 13
+        assert {"track", "total"} <= set(c["owl_stage_ms_per_frame"])
+    # biased rows are reported separately
+    assert "owl_heading_deg_median_bias" in doc and "baseline_gyro_heading_deg_median_bias" in doc
+    assert json.loads(json.dumps(doc)) == doc  # plain JSON
+    # frames were cached once per scenario (the biased row reuses the images)
+    assert len(list(cache.glob("street_160x120_*.npz"))) == 1
+
+
+def test_cached_frames_are_reused_and_equal(tiny):
+    _, cache = tiny
+    sim = bench._sim(bench.Case("street"), TINY)
+    again = bench.load_frames(sim, cache)
+    fresh = bench.load_frames(sim, None)
+    np.testing.assert_array_equal(again.images, fresh.images)
+    finite = np.isfinite(fresh.range_m)
+    np.testing.assert_array_equal(np.isfinite(again.range_m), finite)
+    # the cache stores float16 ranges: relative rounding <= 2^-11
+    np.testing.assert_allclose(again.range_m[finite], fresh.range_m[finite], rtol=2**-11)
+
+
+def test_bench_scores_are_owl_eval_scores_and_a_wrong_heading_shows_exactly():
+    case = bench.Case("street")
+    sim = bench._sim(case, TINY)
+    frames = bench.load_frames(sim, None)
+    run = bench.run_case(case, TINY, frames, sim, keep_results=True)
+    row = bench.case_report(run)["methods"]
+    # recompute the OWL summary from the kept results with owl_eval's functions
+    scores = [
+        score_frame(bench.owl_estimate(r), frames.truth(k), np.zeros(3))
+        for k, r in enumerate(run.owl_results)
+    ]
+    assert summarize(scores, False)["heading_deg_median"] == row["owl"]["heading_deg_median"]
+    # a heading rotated by 7 degrees about an axis perpendicular to the truth scores 7 degrees
+    for k, r in enumerate(run.baseline_results["cv-5pt"]):
+        v = frames.velocity[k]
+        axis = np.cross(v, [1.0, 0.0, 0.0])
+        wrong = so3_exp(axis / np.linalg.norm(axis) * math.radians(7.0)) @ v
+        est = bench.baseline_estimate(r)
+        est = type(est)(est.stamp_ns, wrong, est.pixels, est.range_over_speed, est.flags)
+        s = score_frame(est, frames.truth(k))
+        assert s.heading_deg == pytest.approx(7.0, abs=1e-9)
+    assert float(heading_error_deg(wrong, v)) == pytest.approx(7.0, abs=1e-9)
+
+
+def test_cli_json_and_errors(capsys, tmp_path):
+    argv = ["--quick", "--json", "--cases", "cube", "--seconds", "0.2", "--quiet"]
+    assert bench.main([*argv, "--cache-dir", str(tmp_path)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["image_size"] == "320x240" and doc["profile"] == "quick"
+    assert bench.main(["--cases", "nowhere", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "nowhere" in err
+    assert bench.main(["--quick", "--seconds", "-1", "--quiet"]) == 2
+    assert "--seconds" in capsys.readouterr().err
