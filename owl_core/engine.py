@@ -88,6 +88,11 @@ class EngineOptions:
             processed without gyro, rad/s.
         max_frame_gap_s: a larger gap between frames (or a stamp going backwards) resets
             the tracks, seconds.
+        estimate_speed_change: measure the relative speed change d ln|t|/dt from frame to
+            frame and use it to refer r/|t| to the speed at the current stamp (the track fits
+            refer to about half a window earlier).
+        speed_rate_gain: weight (0..1] of each frame's measurement in the filtered rate.
+        max_speed_rate: clamp of one frame's measured rate, 1/s.
         heading: options of the heading / leftover-rotation estimator.
         seed: seed of the RANSAC random generator (results are deterministic).
     """
@@ -116,6 +121,9 @@ class EngineOptions:
     bias_inflation: float = 3.0
     no_gyro_rotation_sigma: float = 2.0
     max_frame_gap_s: float = 0.5
+    estimate_speed_change: bool = True
+    speed_rate_gain: float = 0.3
+    max_speed_rate: float = 5.0
     heading: hd.HeadingOptions = field(default_factory=hd.HeadingOptions)
     seed: int = 0
 
@@ -169,6 +177,12 @@ class EngineOptions:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise InvalidInputError(f"{name} must be >= 0 and finite, got {value!r}")
+        if not 0.0 < self.speed_rate_gain <= 1.0:
+            raise InvalidInputError(
+                f"speed_rate_gain must be in (0, 1], got {self.speed_rate_gain!r}"
+            )
+        if not self.max_speed_rate > 0:
+            raise InvalidInputError(f"max_speed_rate must be > 0, got {self.max_speed_rate!r}")
         if not self.bias_inflation >= 1.0:
             raise InvalidInputError(f"bias_inflation must be >= 1, got {self.bias_inflation!r}")
         if len(self.initial_bias_imu) != 3 or not all(
@@ -343,6 +357,8 @@ class OwlEngine:
         # recent fused headings: (stamp_ns, heading at its fit reference time, that time
         # relative to stamp_ns in s); used to bring the heading to the current stamp
         self._heading_history: list[tuple[int, FloatArray, float]] = []
+        self._speed_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
+        self._speed_rate = 0.0
         self.frames = 0
 
     # ------------------------------------------------------------------ inputs
@@ -390,6 +406,8 @@ class OwlEngine:
         self._last_stamp = None
         self._last_heading = None
         self._heading_history = []
+        self._speed_state = None
+        self._speed_rate = 0.0
         self._rng = np.random.default_rng(self.options.seed)
 
     def _soft_reset(self) -> None:
@@ -398,6 +416,44 @@ class OwlEngine:
         self._last_stamp = None
         self._last_heading = None
         self._heading_history = []
+        self._speed_state = None
+        self._speed_rate = 0.0
+
+    def _update_speed_rate(
+        self,
+        stamp: int,
+        ids: npt.NDArray[np.uint32],
+        points: FloatArray,
+        headings: FloatArray,
+        static: BoolArray,
+    ) -> float:
+        """Filtered relative speed change d ln|t|/dt (1/s) from consecutive frames.
+
+        A static point's scaled position, moved on by the elapsed time at constant speed,
+        predicts this frame's; the ratio of predicted to measured r/|t| is the speed ratio.
+        """
+        opts = self.options
+        prev = self._speed_state
+        self._speed_state = (stamp, ids[static], points[static], headings[static])
+        if not opts.estimate_speed_change:
+            return 0.0
+        if prev is None:
+            return self._speed_rate
+        p_stamp, p_ids, p_points, p_headings = prev
+        dt = (stamp - p_stamp) * 1e-9
+        _, now_idx, prev_idx = np.intersect1d(ids[static], p_ids, return_indices=True)
+        if dt <= 0 or now_idx.size < 20:
+            return self._speed_rate
+        predicted = np.linalg.norm(p_points[prev_idx] - p_headings[prev_idx] * dt, axis=1)
+        measured = np.linalg.norm(points[static][now_idx], axis=1)
+        good = (predicted > 0) & (measured > 0)
+        if np.count_nonzero(good) < 20:
+            return self._speed_rate
+        rate = float(np.median(np.log(predicted[good] / measured[good]))) / dt
+        rate = float(np.clip(rate, -opts.max_speed_rate, opts.max_speed_rate))
+        gain = opts.speed_rate_gain
+        self._speed_rate = (1.0 - gain) * self._speed_rate + gain * rate
+        return self._speed_rate
 
     def _heading_now(
         self,
@@ -608,6 +664,7 @@ class OwlEngine:
             dropped["no_translation" if not est.translating else "no_heading"] = idx.size
             self._last_heading = None
             self._heading_history = []
+            self._speed_state = None
             return finish()
         heading_ref = est.heading
         self._last_heading = heading_ref
@@ -673,8 +730,11 @@ class OwlEngine:
         ros_now = np.linalg.norm(point_now, axis=1)
         ahead = np.einsum("ni,ni->n", point_now, e_now) > 0
         ok_now = at_ref.valid & ahead & (ros_now > 0)
-        safe_ros = np.where(ok_now, ros_now, 1.0)
         h_i = np.where(ok_now[:, None], h_now_i, 0.0)
+        # point_now is in units of the speed at the fit reference time; a changing speed
+        # (rate s = d ln|t|/dt, measured from frame to frame) rescales it to the current one
+        speed_rate = self._update_speed_rate(stamp, ids, point_now, h_i, ok_now & ~moving)
+        safe_ros = np.where(ok_now, ros_now * np.exp(speed_rate * tau_ref), 1.0)
         looming_now = np.einsum("ni,ni->n", h_i, e_now) / safe_ros
         omega_now = motion.cross(e_now, h_i) / safe_ros[:, None]
         quantities = motion.owl_quantities(e_now, looming_now, omega_now, min_tor=opts.min_tor)

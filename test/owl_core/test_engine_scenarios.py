@@ -216,6 +216,15 @@ def test_curving_path_heading_refers_to_the_current_stamp() -> None:
 
 
 @pytest.mark.slow
+def test_accelerating_camera_range_over_speed_refers_to_the_current_speed() -> None:
+    # 2 m/s^2 from 1 m/s: over the 67 ms fit lag the speed changes by 5-13 %
+    fixed, frames = run_scenario("accel", estimate_speed_change=False)
+    tracked, _ = run_scenario("accel", frames=frames)
+    assert np.median(tracked.ros_rel_err) < 0.045  # measured 2.8 %
+    assert np.median(fixed.ros_rel_err) > 1.5 * np.median(tracked.ros_rel_err)  # 6.3 %
+
+
+@pytest.mark.slow
 def test_moving_car_points_are_flagged() -> None:
     score, _ = run_scenario("mover", seconds=1.5)
     assert score.mover_points > 100
