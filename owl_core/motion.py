@@ -219,15 +219,18 @@ def gnomonic_chart(
         f2: (N, 2) chart velocity of the centre (= f in the tangent basis), 1/s.
     """
     u1, u2 = tangent_basis(bearings)
-    basis = np.stack([u1, u2], axis=1)  # (N, 2, 3)
-    cos = np.einsum("nkj,nj->nk", neighbour_bearings, bearings)
+    # basis (N, 3, 2) with columns u1, u2: a batched matmul projects onto the tangent plane
+    basis = np.stack([u1, u2], axis=2)
+    nb, nf = neighbour_bearings, neighbour_derotated
+    # (the bearing itself is orthogonal to the basis, so b/(b.e) - e projects as b/(b.e))
+    cos = (nb @ bearings[:, :, None])[..., 0]
     safe = np.where(cos > 1e-6, cos, np.nan)
-    proj = neighbour_bearings / safe[..., None] - bearings[:, None, :]
-    fe = np.einsum("nkj,nj->nk", neighbour_derotated, bearings)
-    vel = neighbour_derotated / safe[..., None] - neighbour_bearings * (fe / safe**2)[..., None]
-    d = np.einsum("nkj,naj->nka", proj, basis)
-    f2 = np.einsum("nj,naj->na", derotated, basis)
-    dv = np.einsum("nkj,naj->nka", vel, basis) - f2[:, None, :]
+    inv = 1.0 / safe
+    fe = (nf @ bearings[:, :, None])[..., 0]
+    d = (nb @ basis) * inv[..., None]
+    f2 = (derotated[:, None, :] @ basis)[:, 0, :]
+    vel = (nf @ basis) * inv[..., None] - (nb @ basis) * (fe * inv * inv)[..., None]
+    dv = vel - f2[:, None, :]
     return d, dv, f2
 
 
@@ -320,24 +323,39 @@ def fit_local_looming(
     mask = mask & np.all(np.isfinite(d), axis=2) & np.all(np.isfinite(dv), axis=2)
     d = np.where(mask[..., None], d, 0.0)
     dv = np.where(mask[..., None], dv, 0.0)
-    # Design: rows for the two chart axes of each neighbour; unknowns x = (L, g1, g2, c).
+    # Unknowns x = (L, g1, g2, c); per neighbour two rows (chart axes a = 1, 2):
     # dv_a = L d_a + f_a (g1 d_1 + g2 d_2) + c rot90(d)_a, rot90(d) = (-d_2, d_1).
-    a = np.zeros((n, k, 2, 4))
-    a[:, :, 0, 0] = d[..., 0]
-    a[:, :, 1, 0] = d[..., 1]
-    a[:, :, :, 1] = f2[:, None, :] * d[..., 0:1]
-    a[:, :, :, 2] = f2[:, None, :] * d[..., 1:2]
-    a[:, :, 0, 3] = -d[..., 1]
-    a[:, :, 1, 3] = d[..., 0]
+    # The normal equations are built from weighted sums of these (N, k) products:
+    d1, d2 = d[..., 0], d[..., 1]
+    v1, v2 = dv[..., 0], dv[..., 1]
+    fa, fb = f2[:, 0:1], f2[:, 1:2]
+    ff = (fa * fa + fb * fb)[:, 0]
+    dd = d1 * d1 + d2 * d2
+    fd = fa * d1 + fb * d2  # f . d
+    fxd = fa * d2 - fb * d1  # f x d (z component)
+    products = np.stack(
+        [
+            dd,  # N00 = N33
+            d1 * fd,  # N01
+            d2 * fd,  # N02
+            d1 * d1,  # N11 / |f|^2
+            d1 * d2,  # N12 / |f|^2
+            d2 * d2,  # N22 / |f|^2
+            -d1 * fxd,  # N13
+            -d2 * fxd,  # N23
+            d1 * v1 + d2 * v2,  # b0
+            d1 * (fa * v1 + fb * v2),  # b1
+            d2 * (fa * v1 + fb * v2),  # b2
+            d1 * v2 - d2 * v1,  # b3
+        ],
+        axis=1,
+    )  # (N, 12, k)
     # Normalise by the neighbourhood size so conditioning does not depend on the radius.
-    radius = np.sqrt(
-        np.sum(np.where(mask, np.einsum("nka,nka->nk", d, d), 0.0), axis=1)
-        / np.maximum(mask.sum(axis=1), 1)
-    )
+    radius = np.sqrt(np.sum(np.where(mask, dd, 0.0), axis=1) / np.maximum(mask.sum(axis=1), 1))
     radius = np.where(radius > 0, radius, 1.0)
     weights = mask.astype(np.float64)
-    ridge = np.zeros((n, 4, 4))
     ridge_g = np.maximum(noise**2 / (slant_prior**2 * radius**2), 1e-14)
+    ridge = np.zeros((n, 4, 4))
     ridge[:, 1, 1] = ridge_g
     ridge[:, 2, 2] = ridge_g
     x = np.zeros((n, 4))
@@ -345,17 +363,28 @@ def fit_local_looming(
     scale = np.full(n, noise)
     ok = mask.sum(axis=1) >= min_neighbours
     normal = np.zeros((n, 4, 4))
-    a_flat = a.reshape(n, 2 * k, 4)
-    dv_flat = dv.reshape(n, 2 * k, 1)
+    r2 = radius**2
     for it in range(iterations + 1):
-        wa_t = (a_flat * np.repeat(weights, 2, axis=1)[..., None]).transpose(0, 2, 1)
-        normal = (wa_t @ a_flat) / radius[:, None, None] ** 2
-        rhs = (wa_t @ dv_flat)[..., 0] / radius[:, None] ** 2
+        sums = np.einsum("nqk,nk->nq", products, weights) / r2[:, None]
+        normal = np.empty((n, 4, 4))
+        normal[:, 0, 0] = normal[:, 3, 3] = sums[:, 0]
+        normal[:, 0, 1] = normal[:, 1, 0] = sums[:, 1]
+        normal[:, 0, 2] = normal[:, 2, 0] = sums[:, 2]
+        normal[:, 0, 3] = normal[:, 3, 0] = 0.0
+        normal[:, 1, 1] = ff * sums[:, 3]
+        normal[:, 1, 2] = normal[:, 2, 1] = ff * sums[:, 4]
+        normal[:, 2, 2] = ff * sums[:, 5]
+        normal[:, 1, 3] = normal[:, 3, 1] = sums[:, 6]
+        normal[:, 2, 3] = normal[:, 3, 2] = sums[:, 7]
+        rhs = sums[:, 8:12]
         good = ok & np.all(np.isfinite(normal), axis=(1, 2))
         safe_normal = np.where(good[:, None, None], normal + ridge, np.eye(4))
         x = np.linalg.solve(safe_normal, rhs[..., None])[..., 0]
-        r = dv - (a_flat @ x[..., None]).reshape(n, k, 2)
-        resid = np.sqrt(r[..., 0] ** 2 + r[..., 1] ** 2)
+        lo, g1, g2, c = (x[:, j : j + 1] for j in range(4))
+        slope = g1 * d1 + g2 * d2
+        r_1 = v1 - (lo * d1 + fa * slope - c * d2)
+        r_2 = v2 - (lo * d2 + fb * slope + c * d1)
+        resid = np.sqrt(r_1 * r_1 + r_2 * r_2)
         if it == iterations:
             break
         # Robust scale: median absolute residual per feature (over its used neighbours).
@@ -371,10 +400,8 @@ def fit_local_looming(
     dof = np.maximum(2.0 * wsum - 4.0, 1.0)
     rms = np.sqrt(np.sum(weights * resid**2, axis=1) / dof)
     sigma2 = np.maximum(rms, noise) ** 2
-    # L and c are observable from the offsets alone: their 2x2 block must be well conditioned.
-    lc = normal[:, [0, 3]][:, :, [0, 3]]
-    eig = np.linalg.eigvalsh(np.where(ok[:, None, None], lc, np.eye(2)))
-    valid = ok & (used >= min_neighbours) & (eig[:, 0] > 1e-6 * np.maximum(eig[:, 1], 1e-300))
+    # L and c are observable from the offsets alone (their normal block is sum |d|^2 I).
+    valid = ok & (used >= min_neighbours) & (normal[:, 0, 0] > 0)
     valid &= np.all(np.isfinite(x), axis=1)
     safe_normal = np.where(valid[:, None, None], normal + ridge, np.eye(4))
     cov00 = np.linalg.inv(safe_normal)[:, 0, 0] / radius**2
