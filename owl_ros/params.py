@@ -126,6 +126,15 @@ PARAMS: tuple[Param, ...] = (
         high=5.0,
     ),
     Param(
+        "imu_max_gap_s",
+        "double",
+        0.05,
+        "a longer gap between IMU samples is not interpolated across: frames whose interval "
+        "spans it are processed as not covered by the IMU (flagged or skipped), s",
+        low=1e-3,
+        high=1.0,
+    ),
+    Param(
         "significant_bits",
         "int",
         16,
@@ -408,6 +417,7 @@ class NodeOptions:
         image_transport: "raw" or "compressed".
         queue_size: frames waiting for processing, count (newest wins when full).
         imu_wait_s: bounded wait for IMU coverage of a frame, s.
+        imu_max_gap_s: longest IMU sample gap interpolated across, s.
         significant_bits: significant bits of mono16 images.
         speed_source: "none", "odometry" or "twist".
         speed_topic: topic of the speed source.
@@ -421,6 +431,7 @@ class NodeOptions:
     image_transport: str = "raw"
     queue_size: int = 2
     imu_wait_s: float = 0.1
+    imu_max_gap_s: float = 0.05
     significant_bits: int = 16
     speed_source: str = "none"
     speed_topic: str = "odom"

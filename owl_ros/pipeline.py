@@ -12,16 +12,17 @@ What :class:`Pipeline` does per input:
   length, unknown distortion model) is reported and frames are skipped until a valid one
   arrives; a changed calibration rebuilds the engine.
 - ``imu``: samples with NaN/inf rates, duplicate or out-of-order stamps are dropped and
-  counted; a stamp more than ``max_frame_gap_s`` older than the newest one is a backwards
-  time jump (bag loop, sim clock restart): the engine is reset and a diagnostic says so.
-  A ring buffer of the last seconds of good samples re-feeds a rebuilt engine.
+  counted; a gap longer than ``imu_max_gap_s`` is never interpolated across (frames whose
+  interval spans it count as not covered); a stamp more than ``max_frame_gap_s`` older
+  than the newest one is a backwards time jump (bag loop, sim clock restart): the engine
+  is reset and a diagnostic says so. A ring buffer of the last seconds of good samples re-feeds a rebuilt engine.
 - ``image`` / ``image/compressed``: queued (at most ``queue_size``; when full the oldest
   is dropped and counted: the newest frame wins). A queued frame is processed once the IMU
   covers the interval since the previous frame, or after ``imu_wait_s`` (then the engine
   flags or skips it, per ``require_gyro``), or at once when the IMU already passed its
-  stamp with a gap or has gone silent. A bad image (unknown encoding, step too small,
-  wrong data length, size differing from camera_info) is skipped with a reason naming the
-  field and value; a stamp going backwards resets the engine.
+  stamp with a gap, has gone silent, or the next frame filled the queue. A bad image
+  (unknown encoding, step too small, wrong data length, size differing from camera_info)
+  is skipped with a reason naming the field and value; a stamp going backwards resets the engine.
 - speed (``nav_msgs/Odometry`` or ``geometry_msgs/TwistStamped``): the speed nearest the
   image stamp (within ``speed_max_age_s``, at least ``min_speed``) scales x y z to metres
   and the cloud's ``speed`` field says so (``msg_adapters.pointcloud``).
@@ -341,6 +342,15 @@ class Pipeline:
                 self._count(key)
                 self._last_imu_problem = f"imu stamp {stamp} ns not after {newest} ns ({key[4:]})"
                 return
+        if newest is not None and stamp - newest > self.options.imu_max_gap_s * 1e9:
+            # never interpolate across a gap: frames spanning it are not covered
+            self._count("imu_gaps")
+            self._last_imu_problem = (
+                f"IMU gap of {(stamp - newest) * 1e-6:.1f} ms before {stamp} ns (> imu_max_gap_s)"
+            )
+            self._ring.clear()
+            if self._engine is not None:
+                self._engine.gyro.reset()
         self._newest_imu_ns = stamp
         self._ring.append((stamp, (float(rate[0]), float(rate[1]), float(rate[2]))))
         horizon = stamp - round(IMU_RING_S * 1e9)
@@ -417,7 +427,9 @@ class Pipeline:
                 offset = engine.gyro.imu_time_offset_ns
                 passed = self._newest_imu_ns is not None and self._newest_imu_ns - offset > stamp
                 waiting = now_ns - item.arrival_ns < wait_ns
-                if waiting and not passed and self._imu_live(now_ns):
+                # a full queue ends the wait (the next frame is there already)
+                full = len(self._pending) >= self.options.queue_size > 1
+                if waiting and not passed and not full and self._imu_live(now_ns):
                     break
             self._pending.popleft()
             out = self._process(item, stamp, covered)
@@ -568,6 +580,9 @@ class Pipeline:
         if c["imu_non_finite"] + c["imu_duplicate"] + c["imu_out_of_order"] + c["imu_invalid"]:
             in_level = max(in_level, Level.WARN)
             problems.append(f"bad IMU samples dropped: {self._last_imu_problem}")
+        elif c["imu_gaps"]:
+            in_level = max(in_level, Level.WARN)
+            problems.append(self._last_imu_problem)
         if c["qos_events"]:
             in_level = max(in_level, Level.WARN)
             problems.append(f"QoS: {self._qos_events[-1]}")
@@ -586,6 +601,7 @@ class Pipeline:
                 "last_bad_image": self._last_bad_image,
                 "camera_info_error": self._camera_error or "",
                 "imu_invalid_total": t["imu_invalid"],
+                "imu_gaps_total": t["imu_gaps"],
                 **{f"{k}_total": v for k, v in imu_drops.items()},
                 "last_imu_problem": self._last_imu_problem,
                 "qos_events_total": t["qos_events"],

@@ -1,0 +1,442 @@
+"""owl_ros.pipeline: the message -> engine -> message path, fed with rendered frames.
+
+The inputs are real rclpy messages built from an in-memory rendered scenario (bags.scenarios)
+with the msg_adapters; arrival times are the stamps (a perfectly punctual sensor).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import TwistStamped
+
+from bags import scenarios
+from bags.scenarios import CAMERA_FRAME, IMU_FRAME, SimOptions
+from msg_adapters.camera_info import camera_model_to_info
+from msg_adapters.image import array_to_image
+from msg_adapters.imu import gyro_to_imus
+from msg_adapters.pointcloud import OWL_FIELDS, cloud_speed, cloud_to_array
+from msg_adapters.stamps import header_to_ns, make_header
+from owl_core.types import PointFlag
+from owl_ros.params import build_options
+from owl_ros.pipeline import Inbox, Output, Pipeline, draw_debug
+
+WIDTH, HEIGHT = 320, 240
+FRAME_NS = 33_333_333
+
+
+@dataclass(frozen=True)
+class Feed:
+    """Rendered inputs as rclpy messages."""
+
+    images: list[Any]  # sensor_msgs/Image, mono8
+    info: Any  # sensor_msgs/CameraInfo
+    imus: list[Any]  # sensor_msgs/Imu
+    velocities: list[np.ndarray]  # camera velocity per frame, camera frame, m/s
+    rotation: tuple[float, float, float, float]
+    camera: Any
+
+
+@pytest.fixture(scope="module")
+def feed() -> Feed:
+    sim = scenarios.get("street").simulate(
+        SimOptions(seconds=0.6, width=WIDTH, height=HEIGHT, seed=3)
+    )
+    images, vels = [], []
+    for frame in sim.frames():
+        header = make_header(frame.stamp_ns, CAMERA_FRAME)
+        images.append(array_to_image(frame.image, "mono8", header=header))
+        vels.append(np.asarray(frame.velocity, dtype=np.float64))
+    info = camera_model_to_info(sim.camera, make_header(int(sim.frame_stamps_ns[0]), CAMERA_FRAME))
+    imus = gyro_to_imus(sim.gyro_samples(), IMU_FRAME)
+    return Feed(images, info, imus, vels, sim.camera_to_imu_xyzw, sim.camera)
+
+
+def options(feed: Feed, **values: Any) -> Any:
+    return build_options({"camera_to_imu_rotation_xyzw": list(feed.rotation), **values})
+
+
+def events(
+    feed: Feed,
+    images: Iterable[Any] | None = None,
+    imus: Iterable[Any] | None = None,
+    info: Any | None = "default",
+) -> list[tuple[int, str, Any]]:
+    """(arrival ns, kind, msg) in time order; camera_info with every image."""
+    out = []
+    for img in feed.images if images is None else images:
+        t = header_to_ns(img.header)
+        out.append((t, "image", img))
+        if info is not None:
+            out.append((t, "info", feed.info if info == "default" else info))
+    for imu in feed.imus if imus is None else imus:
+        out.append((header_to_ns(imu.header), "imu", imu))
+    order = {"imu": 0, "image": 1, "info": 2}
+    return sorted(out, key=lambda e: (e[0], order[e[1]]))
+
+
+def run(
+    pipeline: Pipeline, evs: Iterable[tuple[int, str, Any]], flush: bool = True
+) -> list[Output]:
+    outs: list[Output] = []
+    now = 0
+    for now, kind, msg in evs:
+        if kind == "imu":
+            pipeline.add_imu(msg, now)
+        elif kind == "info":
+            pipeline.add_camera_info(msg)
+        elif kind == "speed":
+            pipeline.add_speed(msg)
+        else:
+            pipeline.add_image(msg, now)
+        outs += pipeline.poll(now)
+    if flush:
+        outs += pipeline.poll(now, flush=True)
+    return outs
+
+
+def diag(pipeline: Pipeline, name: str, now: int = 0) -> tuple[str, dict[str, str], int]:
+    recs = {r.name: r for r in pipeline.diagnostics(now, reset_window=False)}
+    rec = recs[f"owl: {name}"]
+    return rec.message, rec.value_map(), int(rec.level)
+
+
+def with_points(outs: list[Output]) -> list[Output]:
+    return [o for o in outs if o.result.num_points > 0]
+
+
+def modified(msg: Any, **fields: Any) -> Any:
+    """A copy of an Image message with some fields replaced."""
+    out = type(msg)()
+    for name in msg.get_fields_and_field_types():
+        setattr(out, name, getattr(msg, name))
+    for name, value in fields.items():
+        setattr(out, name, value)
+    return out
+
+
+# ----------------------------------------------------------------------------- nominal
+
+
+def test_nominal_every_frame_processed_header_kept_heading_right(feed: Feed) -> None:
+    pipe = Pipeline(options(feed))
+    outs = run(pipe, events(feed))
+    assert len(outs) == len(feed.images)
+    for out, img in zip(outs, feed.images, strict=True):
+        assert out.cloud.header == img.header  # stamp and frame_id of the input image
+        assert out.cloud.header.frame_id == CAMERA_FRAME
+    good = with_points(outs)
+    # the fit needs min_track_frames (5) frames; every later frame gives points
+    assert len(good) == len(feed.images) - 4
+    names = [f.name for f in good[0].cloud.fields]
+    assert names == [f[0] for f in OWL_FIELDS]
+    for out in good:
+        assert out.heading is not None and out.heading.header == out.header
+        idx = [header_to_ns(i.header) for i in feed.images].index(header_to_ns(out.header))
+        truth = feed.velocities[idx] / np.linalg.norm(feed.velocities[idx])
+        err = math.acos(np.clip(out.result.heading @ truth, -1, 1))
+        # within 5 stated sigmas (+0.3 deg: the truth is instantaneous, the fit spans 5 frames)
+        assert err < 5 * out.result.heading_sigma_rad + math.radians(0.3)
+        pts = cloud_to_array(out.cloud)
+        assert cloud_speed(pts) is None and np.all(np.isnan(pts["speed"]))
+    _, values, level = diag(pipe, "processing")
+    assert values["frames_processed_total"] == str(len(feed.images))
+    assert values["dropped_queue_full_total"] == "0"
+    assert level == 0
+
+
+# ----------------------------------------------------------------------------- bad images
+
+
+@pytest.mark.parametrize(
+    ("change", "expect"),
+    [
+        ({"encoding": "yuv422"}, "image.encoding 'yuv422'"),
+        ({"step": WIDTH - 1}, f"image.step {WIDTH - 1}"),
+        ({"height": HEIGHT - 1}, "image.data has"),
+    ],
+)
+def test_bad_image_skipped_with_reason_and_processing_continues(
+    feed: Feed, change: dict[str, Any], expect: str
+) -> None:
+    pipe = Pipeline(options(feed))
+    images = list(feed.images)
+    images[6] = modified(images[6], **change)
+    outs = run(pipe, events(feed, images=images))
+    assert len(outs) == len(images) - 1
+    assert header_to_ns(images[6].header) not in [header_to_ns(o.header) for o in outs]
+    msg, values, level = diag(pipe, "input")
+    assert expect in values["last_bad_image"]
+    assert values["bad_images_total"] == "1"
+    assert level == 1 and expect in msg
+    assert with_points(outs)[-1].header == images[-1].header  # kept running
+
+
+def test_image_size_differing_from_camera_info(feed: Feed) -> None:
+    pipe = Pipeline(options(feed))
+    small = array_to_image(np.zeros((120, 160), np.uint8), "mono8", header=feed.images[0].header)
+    run(pipe, events(feed, images=[small]))
+    _, values, _ = diag(pipe, "input")
+    assert "image size 160x120" in values["last_bad_image"]
+    assert "camera_info 320x240" in values["last_bad_image"]
+
+
+# ----------------------------------------------------------------------------- camera_info
+
+
+def test_no_camera_info_then_processing_starts(feed: Feed) -> None:
+    pipe = Pipeline(options(feed))
+    outs = run(pipe, events(feed, images=feed.images[:4], info=None))
+    assert outs == []
+    msg, _, level = diag(pipe, "input")
+    assert level == 2 and "no camera_info received" in msg
+    _, proc, _ = diag(pipe, "processing")
+    # frames wait imu_wait_s for a camera_info just behind them (queue_size 2), then go
+    skipped = int(proc["skipped_no_camera_info_total"])
+    assert skipped >= 1 and skipped + int(proc["dropped_queue_full_total"]) == 4
+    assert "no camera_info received yet" in proc["last_empty_reason"]
+    outs = run(pipe, events(feed, images=feed.images[4:], imus=[]))
+    assert len(outs) == len(feed.images) - 4
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "expect"),
+    [
+        ("k", [0.0] * 9, "camera_info.k is all zero"),
+        ("distortion_model", "fisheye_v9", "'fisheye_v9'"),
+    ],
+)
+def test_invalid_camera_info_reported_until_a_valid_one(
+    feed: Feed, field: str, value: Any, expect: str
+) -> None:
+    pipe = Pipeline(options(feed))
+    bad = modified(feed.info, **{field: value})
+    assert run(pipe, events(feed, images=feed.images[:3], info=bad)) == []
+    msg, values, level = diag(pipe, "input")
+    assert level == 2 and expect in values["camera_info_error"] and expect in msg
+    assert pipe.engine is None
+    outs = run(pipe, events(feed, images=feed.images[3:], imus=[]))
+    # the image just before the valid camera_info finds the invalid one: skipped
+    assert len(outs) == len(feed.images) - 4
+    assert diag(pipe, "input")[1]["camera_info_error"] == ""
+
+
+def test_zero_focal_length_rejected(feed: Feed) -> None:
+    pipe = Pipeline(options(feed))
+    k = list(feed.info.k)
+    k[0] = 0.0
+    run(pipe, events(feed, images=feed.images[:2], info=modified(feed.info, k=k)))
+    _, values, _ = diag(pipe, "input")
+    assert values["camera_info_error"].startswith("camera_info")
+    assert pipe.engine is None
+
+
+# ----------------------------------------------------------------------------- IMU
+
+
+def test_no_imu_default_gives_no_points_with_reason(feed: Feed) -> None:
+    pipe = Pipeline(options(feed))
+    outs = run(pipe, events(feed, imus=[]))
+    assert len(outs) == len(feed.images)
+    assert with_points(outs) == []
+    assert any("no gyro samples (require_gyro)" in r for r in outs[-1].result.reasons)
+    assert diag(pipe, "gyro")[2] == 1
+
+
+def test_no_imu_without_require_gyro_flags_every_point(feed: Feed) -> None:
+    pipe = Pipeline(options(feed, require_gyro=False))
+    outs = run(pipe, events(feed, imus=[]))
+    good = with_points(outs)
+    assert good, [o.result.reasons for o in outs]
+    for out in good:
+        flags = cloud_to_array(out.cloud)["flags"]
+        assert np.all(flags & PointFlag.NO_GYRO)
+        assert not np.any(flags & PointFlag.IMU_GAP)  # no samples at all, not a gap
+
+
+def test_imu_gap_frames_flagged_or_skipped(feed: Feed) -> None:
+    stamps = [header_to_ns(i.header) for i in feed.images]
+    # no IMU from 5 ms after frame 8 to 5 ms before frame 10 (a 60 ms gap)
+    t0, t1 = stamps[8] + 5_000_000, stamps[10] - 5_000_000
+    imus = [m for m in feed.imus if not t0 < header_to_ns(m.header) < t1]
+    pipe = Pipeline(options(feed))
+    outs = run(pipe, events(feed, imus=imus))
+    by_stamp = {header_to_ns(o.header): o for o in outs}
+    assert len(outs) == len(stamps)
+    for k in (9, 10):
+        res = by_stamp[stamps[k]].result
+        assert res.num_points == 0
+        assert any("IMU does not cover the frame interval" in r for r in res.reasons)
+    assert by_stamp[stamps[8]].result.num_points > 0
+    # tracks need fit_frames covered frames again after the gap; then points return
+    assert by_stamp[stamps[-1]].result.num_points > 0
+    assert diag(pipe, "gyro")[1]["frames_imu_not_covered_total"] == "2"
+    assert diag(pipe, "input")[1]["imu_gaps_total"] == "1"
+    assert diag(pipe, "processing")[1]["dropped_queue_full_total"] == "0"
+    # without require_gyro the gap frames give points flagged NO_GYRO | IMU_GAP
+    pipe = Pipeline(options(feed, require_gyro=False))
+    outs = {header_to_ns(o.header): o for o in run(pipe, events(feed, imus=imus))}
+    flags = cloud_to_array(outs[stamps[9]].cloud)["flags"]
+    assert flags.size and np.all(flags & PointFlag.IMU_GAP) and np.all(flags & PointFlag.NO_GYRO)
+    later = cloud_to_array(outs[stamps[-1]].cloud)["flags"]
+    assert later.size and not np.any(later & PointFlag.NO_GYRO)
+
+
+def test_bad_imu_samples_dropped_and_counted(feed: Feed) -> None:
+    imus = list(feed.imus)
+    nan = modified(imus[50])
+    nan.angular_velocity.x = math.nan
+    imus[50] = nan
+    evs = events(feed, imus=imus)
+    # a duplicate and two stale (out-of-order) samples, delivered right after their originals
+    extra = []
+    for idx in (100, 150, 151):
+        t = header_to_ns(imus[idx].header)
+        extra.append((t + 1, "imu", imus[idx] if idx == 100 else imus[idx - 10]))
+    evs = sorted(evs + extra, key=lambda e: e[0])
+    pipe = Pipeline(options(feed))
+    outs = run(pipe, evs)
+    _, values, level = diag(pipe, "input")
+    assert values["imu_non_finite_total"] == "1"
+    assert values["imu_duplicate_total"] == "1"
+    assert values["imu_out_of_order_total"] == "2"
+    assert level == 1
+    assert len(with_points(outs)) == len(feed.images) - 4  # nothing else lost
+
+
+# ----------------------------------------------------------------------------- time
+
+
+def test_time_going_backwards_resets_engine(feed: Feed) -> None:
+    pipe = Pipeline(options(feed))
+    first = run(pipe, events(feed), flush=True)
+    second = run(pipe, events(feed), flush=True)  # a bag loop: same stamps again
+    _, values, level = diag(pipe, "processing")
+    assert int(values["time_jumps_total"]) >= 1
+    assert "engine reset" in values["last_time_jump"]
+    assert level == 1
+    # no stale tracks: the second pass warms up again like the first one
+    assert [o.result.num_points > 0 for o in second] == [o.result.num_points > 0 for o in first]
+    assert len(second) == len(feed.images)
+
+
+def test_duplicate_image_stamp_skipped(feed: Feed) -> None:
+    pipe = Pipeline(options(feed))
+    images = [*feed.images[:6], feed.images[5], *feed.images[6:]]
+    outs = run(pipe, events(feed, images=images))
+    assert len(outs) == len(feed.images)
+    assert diag(pipe, "processing")[1]["skipped_duplicate_stamp_total"] == "1"
+
+
+def test_bounded_wait_for_imu(feed: Feed) -> None:
+    pipe = Pipeline(options(feed, imu_wait_s=0.05))
+    stamps = [header_to_ns(i.header) for i in feed.images]
+    evs = [e for e in events(feed) if e[0] <= stamps[3]]
+    run(pipe, evs, flush=False)
+    # frame 4 arrives, but the IMU stops 10 ms before its stamp (IMU still live)
+    pipe.add_image(feed.images[4], stamps[4])
+    assert pipe.poll(stamps[4]) == []
+    assert pipe.poll(stamps[4] + 49_000_000) == []  # still waiting
+    assert pipe.next_deadline_ns() == stamps[4] + 50_000_000
+    outs = pipe.poll(stamps[4] + 50_000_000)  # wait over: processed with what exists
+    assert len(outs) == 1
+    assert any("IMU does not cover" in r for r in outs[0].result.reasons)
+
+
+def test_newest_frame_wins_when_queue_full(feed: Feed) -> None:
+    pipe = Pipeline(options(feed, queue_size=2))
+    run(pipe, events(feed, images=feed.images[:2]), flush=True)
+    imus = [m for m in feed.imus if header_to_ns(m.header) > header_to_ns(feed.images[1].header)]
+    for imu in imus:
+        pipe.add_imu(imu, 0)
+    for img in feed.images[2:7]:  # five frames arrive while the worker is busy
+        pipe.add_image(img, header_to_ns(img.header))
+    assert pipe.pending == 2
+    outs = pipe.poll(header_to_ns(feed.images[6].header))
+    assert [o.header for o in outs] == [feed.images[5].header, feed.images[6].header]
+    assert diag(pipe, "processing")[1]["dropped_queue_full_total"] == "3"
+
+
+def test_inbox_bounded_newest_wins() -> None:
+    inbox = Inbox(image_capacity=2, other_capacity=3)
+    for k in range(5):
+        inbox.put_image(k, k)
+        inbox.put("imu", k, k)
+    other, images, dropped = inbox.drain()
+    assert images == [(3, 3), (4, 4)] and dropped == 3
+    assert [m for _, m, _ in other] == [2, 3, 4] and inbox.dropped_other == 2
+    assert inbox.drain() == ([], [], 0)
+
+
+# ----------------------------------------------------------------------------- speed, debug
+
+
+def _twist(stamp: int, v: np.ndarray) -> Any:
+    msg = TwistStamped(header=make_header(stamp, CAMERA_FRAME))
+    msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z = (float(x) for x in v)
+    return msg
+
+
+def test_speed_source_makes_cloud_metric(feed: Feed) -> None:
+    pipe = Pipeline(options(feed, speed_source="twist"))
+    stamps = [header_to_ns(i.header) for i in feed.images]
+    speed_evs = [(t, "speed", _twist(t, v)) for t, v in zip(stamps, feed.velocities, strict=True)]
+    evs = sorted(events(feed) + speed_evs, key=lambda e: (e[0], e[1] == "image"))
+    outs = with_points(run(pipe, evs))
+    assert outs
+    for out in outs:
+        speed = float(np.linalg.norm(feed.velocities[stamps.index(header_to_ns(out.header))]))
+        pts = cloud_to_array(out.cloud)
+        assert out.speed == pytest.approx(speed)
+        assert cloud_speed(pts) == pytest.approx(speed, rel=1e-6)
+        xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
+        np.testing.assert_allclose(xyz, (out.result.points * speed).astype(np.float32))
+    assert diag(pipe, "processing")[1]["frames_metric_total"] == str(len(outs))
+
+
+def test_stale_speed_leaves_cloud_in_seconds(feed: Feed) -> None:
+    pipe = Pipeline(options(feed, speed_source="twist", speed_max_age_s=0.01))
+    old = header_to_ns(feed.images[0].header) - 10**9
+    pipe.add_speed(_twist(old, np.array([0.0, 0.0, 4.0])))
+    outs = with_points(run(pipe, events(feed)))
+    assert outs and all(o.speed is None for o in outs)
+
+
+def test_reconfigure_rebuilds_engine(feed: Feed) -> None:
+    pipe = Pipeline(options(feed))
+    run(pipe, events(feed, images=feed.images[:8]), flush=True)
+    engine = pipe.engine
+    pipe.reconfigure(replace(pipe.options, imu_wait_s=0.2))
+    assert pipe.engine is engine  # node setting only: engine kept
+    pipe.reconfigure(options(feed, max_features=200))
+    assert pipe.engine is not engine and pipe.engine is not None
+    assert pipe.engine.options.max_features == 200
+    assert len(pipe.engine.gyro) > 0  # IMU history re-fed
+
+
+def test_draw_debug_marks_points_and_heading(feed: Feed) -> None:
+    pipe = Pipeline(options(feed))
+    out = with_points(run(pipe, events(feed)))[-1]
+    picture = draw_debug(out.image, out.result, pipe.camera)
+    assert picture.shape == (HEIGHT, WIDTH, 3) and picture.dtype == np.uint8
+    foe = pipe.camera.bearing_to_pixel(out.result.heading[None])[0]
+    u, v = np.rint(foe).astype(int)
+    # the heading cross is pure green at the focus of expansion
+    assert tuple(picture[v, u]) == (0, 255, 0)
+    # points are coloured (grey pixels have equal channels)
+    uv = np.rint(out.result.pixels).astype(int)
+    coloured = picture[uv[:, 1], uv[:, 0]]
+    assert np.mean(np.ptp(coloured, axis=1) > 0) > 0.9
+
+
+def test_gyro_samples_before_camera_info_are_kept(feed: Feed) -> None:
+    pipe = Pipeline(options(feed))
+    for imu in feed.imus[:40]:
+        pipe.add_imu(imu, header_to_ns(imu.header))
+    pipe.add_camera_info(feed.info)
+    assert pipe.engine is not None and len(pipe.engine.gyro) == 40
