@@ -117,7 +117,7 @@ class EngineOptions:
     initial_bias_imu: tuple[float, float, float] = (0.0, 0.0, 0.0)
     bias_initial_sigma: float = 0.02
     bias_random_walk: float = 1e-4
-    gyro_noise_density: float = 2e-3
+    gyro_noise_density: float = 2e-4
     bias_inflation: float = 3.0
     no_gyro_rotation_sigma: float = 2.0
     max_frame_gap_s: float = 0.5
