@@ -603,6 +603,12 @@ class OwlEngine:
                 + ("IMU does not cover the interval" if have_gyro else "no gyro samples")
             )
         usable_col[opts.fit_frames :] = False
+        uncovered = int(np.count_nonzero(~usable_col[columns]))
+        if with_gyro and uncovered:
+            reasons.append(
+                f"IMU does not reach back over {uncovered} of the last {columns.size} frames: "
+                "shorter track fits"
+            )
 
         hist = tracks.history[:, : opts.fit_frames]
         n_tracks = hist.shape[0]

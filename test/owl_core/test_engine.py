@@ -221,3 +221,19 @@ def test_deterministic(street: tuple[scenarios.Simulation, list[scenarios.Frame]
         outs.append(res)
     np.testing.assert_array_equal(outs[0].looming, outs[1].looming)
     np.testing.assert_array_equal(outs[0].ids, outs[1].ids)
+
+
+def test_gyro_starting_late_shortens_fits_and_says_so(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
+) -> None:
+    sim, frames = street
+    gyro = sim.gyro_samples()
+    start = frames[3].stamp_ns + sim.imu_time_offset_ns - 1_000_000
+    keep = gyro.stamp_ns >= start
+    engine = make_engine(sim)
+    engine.add_gyro(GyroSamples(gyro.stamp_ns[keep], gyro.angular_velocity[keep]))
+    results = [engine.process(ImageFrame(f.stamp_ns, f.image)) for f in frames[:8]]
+    # frame 4 still sees its history stamps 0..2 uncovered
+    assert any("does not reach back" in r for r in results[4].reasons)
+    assert all(r.num_points == 0 for r in results[:7])  # 5-frame fits need 4 covered intervals
+    assert results[7].num_points > 0
