@@ -14,8 +14,9 @@ writes an MCAP rosbag2 with
 
 The camera-IMU rotation comes from ``--camera-to-imu-rotation-xyzw`` when given, else from
 the bag's ``/tf_static`` (the transform from the IMU frame to the camera frame, either
-direction), else identity. Any node parameter can be set with ``-p NAME:=VALUE`` or a
-ROS parameter file (``--params-file config/owl.yaml``).
+direction), else identity; ``-p camera_to_imu_rotation_xyzw:=[...]`` and a parameter file
+setting a non-identity rotation count as given. Any node parameter can be set with
+``-p NAME:=VALUE`` or a ROS parameter file (``--params-file config/owl.yaml``).
 
 Python use (evaluation, demo)::
 
@@ -40,7 +41,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bags.errors import BagError, CorruptBagError
-from bags.io import BagReader, BagWriter, RawMessage
+from bags.io import BagReader, BagWriter, RawMessage, typestore
 from msg_adapters.diagnostics import records_to_msg
 from msg_adapters.msgtypes import message_class
 from msg_adapters.stamps import header_to_ns
@@ -49,6 +50,7 @@ from owl_ros.params import (
     NodeOptions,
     ParameterError,
     build_options,
+    defaults,
     parse_value,
     to_values,
 )
@@ -61,8 +63,26 @@ HEADING_TOPIC = "/owl/heading"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 TF_STATIC = "/tf_static"
 
+CLOUD = "sensor_msgs/msg/PointCloud2"
+VECTOR = "geometry_msgs/msg/Vector3Stamped"
+DIAG = "diagnostic_msgs/msg/DiagnosticArray"
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 SPEED_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/TwistStamped")
+
+
+def canonical_cdr(msg: Any, msgtype: str) -> bytes:
+    """CDR bytes of an rclpy message with zeroed alignment padding.
+
+    ``rclpy.serialization.serialize_message`` leaves the CDR padding bytes uninitialised,
+    so identical messages could serialise differently; a round trip through the rosbags
+    typestore (which writes zero padding) makes the bytes a function of the content only.
+    """
+    from rclpy.serialization import serialize_message
+
+    store = typestore()
+    return bytes(
+        store.serialize_cdr(store.deserialize_cdr(serialize_message(msg), msgtype), msgtype)
+    )
 
 
 class ProcessError(Exception):
@@ -255,7 +275,7 @@ def process_bag(
         node_opts = replace(opts.node, speed_source=speed_source)
         pipeline = Pipeline(node_opts)
         classes = {t: message_class(infos[t].msgtype) for t in roles}
-        from rclpy.serialization import deserialize_message, serialize_message
+        from rclpy.serialization import deserialize_message
 
         transforms: list[Any] = []
         imu_frame: str | None = None
@@ -274,9 +294,9 @@ def process_bag(
         damage: str | None = None
 
         with BagWriter(out, overwrite=opts.overwrite) as writer:
-            writer.add_topic(POINTS_TOPIC, "sensor_msgs/msg/PointCloud2", "reliable")
-            writer.add_topic(HEADING_TOPIC, "geometry_msgs/msg/Vector3Stamped", "reliable")
-            writer.add_topic(DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", "reliable")
+            writer.add_topic(POINTS_TOPIC, CLOUD, "reliable")
+            writer.add_topic(HEADING_TOPIC, VECTOR, "reliable")
+            writer.add_topic(DIAGNOSTICS_TOPIC, DIAG, "reliable")
             for topic in copy:
                 if topic not in (POINTS_TOPIC, HEADING_TOPIC, DIAGNOSTICS_TOPIC):
                     writer.add_topic(topic, infos[topic].msgtype, infos[topic].qos_kind)
@@ -290,10 +310,10 @@ def process_bag(
                     stamp = header_to_ns(o.header)
                     frames += 1
                     points += o.result.num_points
-                    writer.write_raw(POINTS_TOPIC, max(stamp, 0), serialize_message(o.cloud))
+                    writer.write_raw(POINTS_TOPIC, max(stamp, 0), canonical_cdr(o.cloud, CLOUD))
                     if o.heading is not None and o.result.heading is not None:
                         writer.write_raw(
-                            HEADING_TOPIC, max(stamp, 0), serialize_message(o.heading)
+                            HEADING_TOPIC, max(stamp, 0), canonical_cdr(o.heading, VECTOR)
                         )
                         stamps.append(stamp)
                         headings.append(np.asarray(o.result.heading, dtype=np.float64))
@@ -304,7 +324,7 @@ def process_bag(
 
             def diagnostics(now_ns: int) -> None:
                 msg = records_to_msg(pipeline.diagnostics(now_ns), now_ns)
-                writer.write_raw(DIAGNOSTICS_TOPIC, max(now_ns, 0), serialize_message(msg))
+                writer.write_raw(DIAGNOSTICS_TOPIC, max(now_ns, 0), canonical_cdr(msg, DIAG))
 
             def handle(raw: RawMessage) -> None:
                 nonlocal imu_frame, rotation, decided, extrinsic_source, next_diag
@@ -468,8 +488,15 @@ def _params_file(path: str) -> dict[str, Any]:
 def options_from_args(args: argparse.Namespace) -> ProcessOptions:
     """ProcessOptions from parsed arguments; ProcessError/ParameterError on bad values."""
     values: dict[str, Any] = {}
+    rotation_given = False
     if args.params_file:
         values.update(_params_file(args.params_file))
+        # a parameter file that keeps the default (identity) rotation does not override
+        # /tf_static; one that sets another rotation does
+        given = values.get("camera_to_imu_rotation_xyzw")
+        rotation_given = given is not None and list(given) != list(
+            defaults()["camera_to_imu_rotation_xyzw"]
+        )
     for item in args.param:
         name, sep, text = item.partition(":=")
         if not sep:
@@ -477,6 +504,7 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
         if not sep or not name:
             raise ProcessError(f"-p expects NAME:=VALUE, got {item!r}")
         values[name] = parse_value(name, text)
+        rotation_given |= name == "camera_to_imu_rotation_xyzw"
     if args.camera_to_imu_rotation_xyzw is not None:
         try:
             q = [float(v) for v in args.camera_to_imu_rotation_xyzw.split(",")]
@@ -486,6 +514,7 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
                 f"{args.camera_to_imu_rotation_xyzw!r}"
             ) from None
         values["camera_to_imu_rotation_xyzw"] = q
+        rotation_given = True
     if args.imu_time_offset is not None:
         values["imu_time_offset"] = args.imu_time_offset
     node = build_options(values)
@@ -495,7 +524,7 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
         camera_info_topic=args.camera_info_topic,
         imu_topic=args.imu_topic,
         speed_topic=args.speed_topic,
-        rotation_from_tf="camera_to_imu_rotation_xyzw" not in values,
+        rotation_from_tf=not rotation_given,
         copy_inputs=args.copy_inputs,
         overwrite=args.overwrite,
     )
