@@ -335,6 +335,14 @@ class BagReader:
         """Total number of messages."""
         return sum(t.count for t in self._topics.values())
 
+    @property
+    def custom_data(self) -> dict[str, str]:
+        """metadata.yaml ``custom_data`` (key -> string); {} for a bare or recovered .mcap."""
+        if self._reader is None:
+            return {}
+        custom = self._reader.metadata.custom or {}
+        return {str(k): str(v) for k, v in custom.items()}
+
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
         """Yield the messages of ``topics`` (all when None) in log-time order.
 

@@ -135,9 +135,11 @@ def test_round_trip_rosbags_exact(tmp_path: Path) -> None:
         only = list(bag.messages(["/note", "/tf_static"]))
         assert [m.topic for m in only] == ["/tf_static", "/note"]
         assert bag.deserialize(only[1]).data == "raw bytes ünïcode"
-    # the bare .mcap file reads the same
+        assert bag.custom_data == {"scenario": "unit-test"}
+    # the bare .mcap file reads the same (it has no metadata.yaml, so no custom data)
     with BagReader(out / "bag.mcap") as bag:
         assert list(bag.messages()) == written
+        assert bag.custom_data == {}
 
 
 def test_round_trip_mcap_reader_and_metadata(tmp_path: Path, mcap_read) -> None:
