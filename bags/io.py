@@ -340,7 +340,7 @@ class BagReader:
         """metadata.yaml ``custom_data`` (key -> string); {} for a bare or recovered .mcap."""
         if self._reader is None:
             return {}
-        custom = self._reader.metadata.custom or {}
+        custom = getattr(self._reader.storage.metadata, "custom", None) or {}
         return {str(k): str(v) for k, v in custom.items()}
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
