@@ -442,6 +442,63 @@ def read_estimates(
     return out
 
 
+def read_results(path: str | Path, points_topic: str | None = None) -> list[Any]:
+    """A result bag's clouds and headings back as owl_core FrameResults, in stamp order.
+
+    Fields the cloud does not carry (timings, reasons, heading sigma) are empty/NaN;
+    ``bearings`` are the unit vectors of ``x y z`` (or zero when a point has none). For
+    plots of results written by owl_process.
+    """
+    from msg_adapters.heading import msg_to_heading
+    from msg_adapters.pointcloud import cloud_to_array
+    from msg_adapters.stamps import header_to_ns
+    from owl_core.types import FrameResult
+
+    with BagReader(path) as bag:
+        topics = bag.topics
+        pts_t = _pick(topics, POINTS_TOPICS, points_topic)
+        if pts_t is None:
+            msg = f"result bag {path} has no {points_topic or '/owl/points'} (has: "
+            raise EvalError(msg + ", ".join(sorted(topics)) + ")")
+        head_t = _pick(topics, HEADING_TOPICS, None)
+        clouds: dict[int, Any] = {}
+        headings: dict[int, FloatArray] = {}
+        for raw in bag.messages([t for t in (pts_t, head_t) if t is not None]):
+            msg = _rclpy_msg(bag, raw)
+            if raw.topic == pts_t:
+                clouds[header_to_ns(msg.header)] = cloud_to_array(msg)
+            else:
+                headings[header_to_ns(msg.header)] = msg_to_heading(msg)
+    out = []
+    for stamp in sorted(clouds):
+        a = clouds[stamp]
+
+        def col(*names: str, arr: Any = a) -> FloatArray:
+            return np.stack([np.asarray(arr[n], dtype=np.float64) for n in names], axis=-1)
+
+        pts = col("x", "y", "z")
+        norm = np.linalg.norm(pts, axis=1, keepdims=True)
+        out.append(
+            FrameResult(
+                stamp_ns=stamp,
+                pixels=col("u", "v"),
+                bearings=np.where(norm > 0, pts / np.where(norm > 0, norm, 1.0), 0.0),
+                looming=np.asarray(a["L"], dtype=np.float64),
+                omega=col("omega_x", "omega_y", "omega_z"),
+                rot=col("rot_w", "rot_x", "rot_y", "rot_z"),
+                range_over_speed=np.asarray(a["range_over_speed"], dtype=np.float64),
+                points=pts,
+                quality=np.asarray(a["quality"], dtype=np.float64),
+                ids=np.asarray(a["id"], dtype=np.uint32),
+                flags=np.asarray(a["flags"], dtype=np.uint8),
+                heading=headings.get(stamp),
+                heading_sigma_rad=math.nan,
+                gyro_bias=np.full(3, np.nan),
+            )
+        )
+    return out
+
+
 def truth_info(path: str | Path) -> dict[str, Any]:
     """The truth bag's owl_make_bag options (metadata custom_data), {} when absent."""
     meta = Path(path) / "metadata.yaml"
