@@ -346,11 +346,15 @@ def case_report(run: CaseRun) -> dict[str, Any]:
     }
 
 
-def _pooled(runs: Sequence[CaseRun], method: str, biased: bool) -> dict[str, Any]:
+def _pooled(
+    runs: Sequence[CaseRun], method: str, biased: bool, only: set[str] | None = None
+) -> dict[str, Any]:
     scores = [
         s
         for r in runs
-        if r.case.scenario in STATIC and bool(r.case.bias) == biased
+        if r.case.scenario in STATIC
+        and bool(r.case.bias) == biased
+        and (only is None or r.case.scenario in only)
         for s in r.scores[method]
     ]
     return summarize(scores, False) if scores else {}
@@ -372,7 +376,8 @@ def run_bench(
     estimation_speedup (cv-5pt estimation time / OWL estimation time, tracking excluded),
     estimation_speedup_gyro, owl_/baseline_/baseline_gyro_ heading_deg_median/p90 and
     range_rel_median/p90 pooled over the static scenarios without bias, the same with suffix
-    ``_bias`` for the biased rows, owl_points_per_frame, owl_stage_ms_per_frame,
+    ``_bias`` for the biased rows and ``_nobias_matched`` for the unbiased rows of the same
+    scenarios, owl_points_per_frame, owl_stage_ms_per_frame,
     heading_ratio and range_ratio (OWL / cv-5pt medians), peak_rss_mb, machine, cases
     (per-case rows: stage times, and per method every owl_eval summary key + fps).
     """
@@ -414,9 +419,11 @@ def run_bench(
         "baseline_gyro_estimate_ms_per_frame": 1e3 * est["cv-gyro"] / total_frames,
     }
     prefix = {"owl": "owl", "cv-5pt": "baseline", "cv-gyro": "baseline_gyro"}
-    for biased, suffix in ((False, ""), (True, "_bias")):
+    with_bias = {r.case.scenario for r in runs if r.case.bias}
+    pools = ((False, "", None), (False, "_nobias_matched", with_bias), (True, "_bias", None))
+    for biased, suffix, only in pools:
         for m in METHODS:
-            pooled = _pooled(runs, m, biased)
+            pooled = _pooled(runs, m, biased, only)
             for key in (
                 "heading_deg_median",
                 "heading_deg_p90",
@@ -517,9 +524,15 @@ def report_lines(doc: dict[str, Any]) -> list[str]:
         f"  estimation speedup (baseline / OWL): cv-5pt {doc['estimation_speedup']:.2f}x, "
         f"cv-gyro {doc['estimation_speedup_gyro']:.2f}x",
         "",
-        "pooled over the static scenarios (heading deg median/p90, r/|t| median/p90):",
+        "pooled over the static scenarios (heading deg median/p90, r/|t| median/p90; 'same' ="
+        " the scenarios that also have a bias row):",
     ]
-    for label, suffix in (("no bias", ""), (f"bias {BIAS:g} rad/s", "_bias")):
+    rows = (
+        ("no bias, all", ""),
+        ("no bias, same", "_nobias_matched"),
+        (f"bias {BIAS:g} rad/s", "_bias"),
+    )
+    for label, suffix in rows:
         for name, prefix in (("OWL", "owl"), ("cv-5pt", "baseline"), ("cv-gyro", "baseline_gyro")):
             h50 = doc.get(f"{prefix}_heading_deg_median{suffix}")
             if h50 is None and doc.get(f"{prefix}_range_rel_median{suffix}") is None:
