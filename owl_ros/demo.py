@@ -255,9 +255,13 @@ def _table(rows: dict[str, dict[str, Any]]) -> list[str]:
 
 def run_demo(args: argparse.Namespace) -> Path:
     """All steps; returns the report path."""
+    from bags import scenarios
     from owl_ros import bench, plots
     from owl_ros import eval as ev
 
+    scenarios.get(args.scenario)  # unknown name: ScenarioError listing the known ones
+    if not (math.isfinite(args.seconds) and args.seconds > 0):
+        raise DemoError(f"--seconds must be positive, got {args.seconds}")
     out = Path(args.out)
     work = out / "demo"
     fig_dir = out / "figures"

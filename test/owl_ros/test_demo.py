@@ -1,0 +1,54 @@
+"""make demo end to end on a tiny scenario: bag, owl_process, eval, baseline, figures, report."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from owl_ros import demo
+
+
+@pytest.mark.slow
+def test_demo_end_to_end(tmp_path, capsys):
+    argv = [
+        "--width",
+        "160",
+        "--height",
+        "120",
+        "--seconds",
+        "0.5",
+        "--out",
+        str(tmp_path),
+        "--quiet",
+    ]
+    assert demo.main(argv) == 0
+    out = capsys.readouterr().out
+    assert str(tmp_path / "report.md") in out
+    report = (tmp_path / "report.md").read_text()
+    assert "| heading error median (deg) |" in report
+    assert "OWL (owl_process)" in report and "OpenCV 5-point" in report
+    figures = [
+        "shape_constancy",
+        "complex_domain",
+        "heading_error",
+        "range_scatter",
+        "scaled_cloud",
+        "fields",
+    ]
+    for name in figures:
+        png = tmp_path / "figures" / f"{name}.png"
+        assert f"figures/{name}.png" in report
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    metrics = json.loads((tmp_path / "demo_metrics.json").read_text())
+    owl = metrics["owl"]
+    assert owl["frames"] == 16 and owl["heading_frames"] > 0
+    # a 160x120 street with a 0.01 rad/s gyro bias: OWL's heading is still within a few deg
+    assert owl["heading_deg_median"] < 5.0
+    assert (tmp_path / "demo" / "owl" / "metadata.yaml").is_file()
+
+
+def test_demo_bad_scenario_is_one_line(tmp_path, capsys):
+    assert demo.main(["--scenario", "nowhere", "--out", str(tmp_path), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "nowhere" in err
