@@ -705,6 +705,12 @@ class OwlEngine:
             )
         res = np.nan_to_num(est.residuals, nan=0.0)
         moving = np.abs(res) > opts.moving_sigma
+        # A static point's omega is a positive multiple of e x heading (it lies in front of
+        # the camera): a clearly negative multiple is something moving against the flow.
+        exh = motion.cross(e, heading_ref)
+        sin = np.linalg.norm(exh, axis=1)
+        along = np.einsum("ni,ni->n", omega, exh) / np.maximum(sin, 1e-12)
+        moving |= (sin > opts.heading_min_sin) & (along < -opts.moving_sigma * f_sigma)
         route = motion.looming_from_heading(
             e,
             omega,
