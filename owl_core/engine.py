@@ -70,6 +70,7 @@ class EngineOptions:
         neighbours: k nearest image neighbours used by the local looming rule, count.
         neighbour_radius_px: neighbours farther than this are not used, pixels.
         min_neighbours: fewer usable neighbours -> no L from the local rule, count (>= 3).
+        looming_iterations: robust reweighting iterations of the local rule, count (>= 0).
         min_quality: points below this quality (0..1) are flagged LOW_QUALITY.
         min_tor: |ToR| at or below this (1/s) means no translation signal at the point.
         moving_sigma: a point whose coplanarity residual, or whose two L routes, differ by
@@ -109,6 +110,7 @@ class EngineOptions:
     neighbours: int = 10
     neighbour_radius_px: float = 80.0
     min_neighbours: int = 5
+    looming_iterations: int = 2
     min_quality: float = 0.3
     min_tor: float = 1e-6
     moving_sigma: float = 4.0
@@ -143,6 +145,7 @@ class EngineOptions:
             "min_track_frames": (self.min_track_frames, 2),
             "neighbours": (self.neighbours, 3),
             "min_neighbours": (self.min_neighbours, 3),
+            "looming_iterations": (self.looming_iterations, 0),
         }
         for name, (value, low) in ints.items():
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
@@ -702,6 +705,7 @@ class OwlEngine:
                 nb_mask,
                 noise=noise,
                 min_neighbours=opts.min_neighbours,
+                iterations=opts.looming_iterations,
             )
         res = np.nan_to_num(est.residuals, nan=0.0)
         moving = np.abs(res) > opts.moving_sigma

@@ -56,11 +56,11 @@ class HeadingOptions:
             residuals and inlier flags are still computed for every point.
     """
 
-    ransac_hypotheses: int = 128
+    ransac_hypotheses: int = 64
     starts: int = 4
     warm_starts: int = 1
     inlier_sigma: float = 3.0
-    irls_iterations: int = 6
+    irls_iterations: int = 4
     cauchy_sigma: float = 2.5
     min_points: int = 8
     min_sin: float = 0.05
