@@ -38,7 +38,7 @@ from owl_core.camera import CameraModel
 from owl_core.errors import InvalidInputError
 from owl_core.geometry import quat_xyzw_to_matrix
 from owl_core.gyro import GyroBuffer
-from owl_core.tracker import FeatureTracker, TrackerOptions
+from owl_core.tracker import FeatureTracker, TrackerOptions, Tracks
 from owl_core.types import FrameResult, GyroSamples, ImageFrame, PointFlag
 
 FloatArray = npt.NDArray[np.float64]
@@ -362,6 +362,7 @@ class OwlEngine:
         self._heading_history: list[tuple[int, FloatArray, float]] = []
         self._speed_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
         self._speed_rate = 0.0
+        self._last_tracks: Tracks | None = None
         self.frames = 0
 
     # ------------------------------------------------------------------ inputs
@@ -375,6 +376,12 @@ class OwlEngine:
     def gyro_bias_sigma(self) -> FloatArray:
         """(3,) 1-sigma of the bias estimate per IMU axis, rad/s."""
         return np.asarray(np.sqrt(np.diag(self._bias.cov)), dtype=np.float64)
+
+    @property
+    def last_tracks(self) -> Tracks | None:
+        """The tracker's :class:`~owl_core.tracker.Tracks` of the latest :meth:`process`
+        call (None before the first frame and after :meth:`reset`)."""
+        return self._last_tracks
 
     @property
     def gyro(self) -> GyroBuffer:
@@ -404,6 +411,7 @@ class OwlEngine:
     def reset(self) -> None:
         """Forget tracks, gyro samples, heading and the bias estimate."""
         self._tracker.reset()
+        self._last_tracks = None
         self._gyro.reset()
         self._bias.reset()
         self._last_stamp = None
@@ -557,6 +565,7 @@ class OwlEngine:
 
         t0 = time.perf_counter()
         tracks = self._tracker.track(img, stamp, predict)
+        self._last_tracks = tracks
         timings["track"] = time.perf_counter() - t0
         for key, value in getattr(tracks, "timings", {}).items():
             timings[key] = float(value)

@@ -92,6 +92,9 @@ def test_first_frames_give_reasons_then_points(
     assert first.dropped.get("young_track", 0) > 0
     later = results[-1]
     assert later.num_points > 100
+    tracks = engine.last_tracks
+    assert tracks is not None and tracks.stamp_ns == frames[-1].stamp_ns
+    assert set(later.ids.tolist()) <= set(tracks.ids.tolist())
     assert later.heading is not None and np.isfinite(later.heading_sigma_rad)
     n = later.num_points
     for name in ("pixels", "bearings", "omega", "points"):
@@ -204,6 +207,7 @@ def test_reset_forgets_everything(
     for f in frames[:8]:
         engine.process(ImageFrame(f.stamp_ns, f.image))
     engine.reset()
+    assert engine.last_tracks is None
     np.testing.assert_array_equal(engine.gyro_bias, [0.001, 0.0, 0.0])
     assert len(engine.gyro) == 0
     res = engine.process(ImageFrame(frames[8].stamp_ns, frames[8].image))
