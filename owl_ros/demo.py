@@ -20,6 +20,7 @@ import argparse
 import json
 import math
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -129,13 +130,19 @@ def _process(in_bag: Path, out_bag: Path, log: _Log) -> str:
     return "owl_process (owl_ros.process.process_bag)"
 
 
-def _live(in_bag: Path, out_bag: Path, log: _Log) -> str:
-    """The node over DDS: owl_node, owl_record of its outputs, owl_replay of the input bag."""
+def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]) -> str:
+    """The node over DDS: owl_node, owl_record of its outputs, owl_replay of the input bag.
+
+    The node gets the camera-IMU rotation as a parameter (the bag's /tf_static is not
+    replayed: tf2_msgs is not needed for that).
+    """
     import os
 
     env = dict(os.environ)
     env.setdefault("ROS_DOMAIN_ID", str(150 + os.getpid() % 50))
     py = sys.executable
+    logs = {name: out_bag.parent / f"{name}.log" for name in ("owl_node", "owl_record")}
+    files = {name: path.open("w") for name, path in logs.items()}
     node = subprocess.Popen(
         [
             py,
@@ -148,44 +155,73 @@ def _live(in_bag: Path, out_bag: Path, log: _Log) -> str:
             "camera_info:=/camera/camera_info",
             "-r",
             "imu:=/imu/data",
+            "-p",
+            "camera_to_imu_rotation_xyzw:=[" + ",".join(f"{v:.17g}" for v in rotation_xyzw) + "]",
         ],
         env=env,
         stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
+        stderr=files["owl_node"],
     )
     rec = subprocess.Popen(
-        [py, "-m", "bags.record", str(out_bag), "/owl/points", "/owl/heading", "/diagnostics"],
+        [
+            py,
+            "-m",
+            "bags.record",
+            str(out_bag),
+            "/owl/points",
+            "/owl/heading",
+            "/diagnostics",
+            "--stamp",
+            "header",
+            "-q",
+        ],
         env=env,
         stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
+        stderr=files["owl_record"],
     )
     try:
-        time.sleep(3.0)  # discovery
-        if node.poll() is not None:
-            raise DemoError(
-                f"owl_node exited: {(node.stderr.read() if node.stderr else '')[-300:]}"
-            )
-        log("  owl_replay: publishing the bag over DDS")
+        time.sleep(2.0)  # let the node and the recorder come up before checking them
+        for name, proc in (("owl_node", node), ("owl_record", rec)):
+            if proc.poll() is not None:
+                tail = logs[name].read_text().strip().splitlines()[-1:]
+                raise DemoError(f"{name} exited (status {proc.returncode}): {tail}")
+        log("  owl_replay at half speed (the node processes every frame)")
         rep = subprocess.run(
-            [py, "-m", "bags.replay", str(in_bag)],
+            [
+                py,
+                "-m",
+                "bags.replay",
+                str(in_bag),
+                "-r",
+                "0.5",
+                "--topics",
+                "/camera/image_raw",
+                "/camera/camera_info",
+                "/imu/data",
+                "--wait-for-subscribers",
+                "--wait-timeout",
+                "30",
+                "-q",
+            ],
             env=env,
             capture_output=True,
             text=True,
-            timeout=600,
+            timeout=900,
         )
         if rep.returncode != 0:
             raise DemoError(f"owl_replay failed: {rep.stderr.strip().splitlines()[-1:]}")
-        time.sleep(2.0)  # let the node finish the last frames
+        time.sleep(3.0)  # the node finishes its queue, the recorder drains
     finally:
-        for proc in (rec, node):
+        for proc in (node, rec):  # stop the node first, then the recorder
             if proc.poll() is None:
-                proc.send_signal(2)
+                proc.send_signal(signal.SIGINT)
                 try:
-                    proc.wait(timeout=15)
+                    proc.wait(timeout=20)
                 except subprocess.TimeoutExpired:
                     proc.kill()
+                    proc.wait()
+        for f in files.values():
+            f.close()
     if not out_bag.exists():
         raise DemoError("owl_record wrote no bag")
     return "owl_node over DDS (owl_replay -> owl_node -> owl_record)"
@@ -280,7 +316,14 @@ def run_demo(args: argparse.Namespace) -> Path:
     if owl_bag.exists():
         shutil.rmtree(owl_bag)
     log.step("owl_node over DDS" if args.live else f"owl_process {in_bag} -o {owl_bag}")
-    how = _live(in_bag, owl_bag, log) if args.live else _process(in_bag, owl_bag, log)
+    if args.live:
+        from bags.make_bag import build_parser as make_parser
+        from bags.make_bag import options_from_args
+
+        mount = options_from_args(make_parser().parse_args(make_argv)).imu.camera_to_imu_xyzw
+        how = _live(in_bag, owl_bag, log, mount)
+    else:
+        how = _process(in_bag, owl_bag, log)
 
     log.step(f"owl_eval {owl_bag} --truth {in_bag}")
     evaluation = ev.evaluate(owl_bag, in_bag)

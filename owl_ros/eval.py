@@ -423,13 +423,19 @@ def read_estimates(
                         bias_track.append((raw.log_time_ns, b))
     stamps = sorted(set(clouds) | set(headings))
     bias_t = np.array([t for t, _ in bias_track], dtype=np.int64)
+    # Diagnostics are logged on the bag clock (owl_process) or on the recorder's wall clock
+    # (a live run): align them with the image stamps only when the two ranges overlap, else
+    # give the last estimate to the last frame.
+    aligned = bool(bias_t.size and stamps and bias_t[0] <= stamps[-1] and bias_t[-1] >= stamps[0])
     out: dict[int, Estimate] = {}
     for stamp in stamps:
         arr = clouds.get(stamp)
         bias = None
-        if bias_t.size:
+        if aligned:
             k = int(np.searchsorted(bias_t, stamp, side="right")) - 1
-            bias = bias_track[max(k, 0)][1]
+            bias = bias_track[k][1] if k >= 0 else None
+        elif bias_t.size and stamp == stamps[-1]:
+            bias = bias_track[-1][1]
         if arr is not None:
             flags = arr["flags"] if "flags" in arr.dtype.names else np.zeros(arr.size)
             pixels = np.c_[arr["u"], arr["v"]].astype(np.float64)

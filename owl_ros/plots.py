@@ -227,7 +227,7 @@ def complex_domain(
     )
     lc.set_array(np.asarray(cols))
     ax.add_collection(lc)
-    fig.colorbar(lc, ax=ax, label="time (s)", shrink=0.8)
+    fig.colorbar(lc, ax=ax, label="time (s)", shrink=0.6)
     xs = np.concatenate([tr[:, 1] for tr in chosen]) if chosen else _signed_omega(last)
     ys = np.concatenate([tr[:, 2] for tr in chosen]) if chosen else last.looming
     lim = float(np.nanpercentile(np.hypot(xs, ys), 98)) * 1.15 if xs.size else 1.0
