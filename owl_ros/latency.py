@@ -1,0 +1,279 @@
+"""owl_latency: image-in to cloud-out latency, throughput, CPU and RSS of a live ``owl_node``.
+
+Renders a scenario once (in memory), starts ``owl_node`` in its own process on a private
+ROS domain, and publishes the clip in a loop over real DDS at wall-clock pace with header
+stamps = the wall-clock publication time (camera_info and IMU alongside, IMU at its own
+rate, stamps shifted each loop so time only moves forward). A subscriber in this process
+takes the arrival time of each ``owl/points`` cloud minus its header stamp: the latency
+from image publication to cloud reception, DDS included. ``--speed`` plays the clip faster
+(stamps compressed and gyro rates scaled to stay consistent) to find the highest input
+rate the node keeps up with. CPU (all threads of the node process) and RSS come from
+``/proc``.
+
+    python -m owl_ros.latency --width 640 --height 480 --rate 30 --seconds 10
+    python -m owl_ros.latency --speed 1 1.5 2 3    # 30, 45, 60, 90 Hz input
+
+``measure(...)`` returns a :class:`Measurement` for reuse by the benchmark.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+PROG = "owl_latency"
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One run of the node at one input rate.
+
+    Attributes:
+        input_rate_hz: image rate published, Hz.
+        width, height: image size, px. max_features: node parameter.
+        images_sent: images published during the measurement window.
+        clouds: clouds received for them.
+        kept_up: clouds / images (1.0 = every frame processed).
+        latency_ms_p50, latency_ms_p95, latency_ms_max: publication -> reception, ms.
+        cpu_percent: node process CPU time / wall time over the window, % of one core.
+        rss_mb: node resident set size at the end, MiB.
+        points_per_cloud: mean points per non-empty cloud.
+    """
+
+    input_rate_hz: float
+    width: int
+    height: int
+    max_features: int
+    images_sent: int
+    clouds: int
+    kept_up: float
+    latency_ms_p50: float
+    latency_ms_p95: float
+    latency_ms_max: float
+    cpu_percent: float
+    rss_mb: float
+    points_per_cloud: float
+
+
+@dataclass(frozen=True)
+class _Clip:
+    images: list[tuple[int, Any]]  # (stamp offset ns, sensor_msgs/Image)
+    imus: list[tuple[int, Any, np.ndarray]]  # (stamp offset ns, Imu, rate (3,))
+    info: Any
+    duration_ns: int
+    rotation: tuple[float, float, float, float]
+
+
+def render_clip(scenario: str, seconds: float, width: int, height: int, rate: float) -> _Clip:
+    """Render ``scenario`` into rclpy messages with stamps relative to the first frame."""
+    from bags import scenarios
+    from bags.scenarios import CAMERA_FRAME, IMU_FRAME, SimOptions
+    from msg_adapters.camera_info import camera_model_to_info
+    from msg_adapters.image import array_to_image
+    from msg_adapters.imu import gyro_to_imus
+    from msg_adapters.stamps import header_to_ns, make_header
+
+    sim = scenarios.get(scenario).simulate(
+        SimOptions(seconds=seconds, width=width, height=height, rate_hz=rate)
+    )
+    start = int(sim.frame_stamps_ns[0])
+    images = [
+        (
+            f.stamp_ns - start,
+            array_to_image(f.image, "mono8", header=make_header(f.stamp_ns, CAMERA_FRAME)),
+        )
+        for f in sim.frames()
+    ]
+    gyro = sim.gyro_samples()
+    imus = [
+        (header_to_ns(m.header) - start, m, gyro.angular_velocity[i])
+        for i, m in enumerate(gyro_to_imus(gyro, IMU_FRAME))
+    ]
+    duration = images[-1][0] + round(1e9 / rate)
+    imus = [x for x in imus if 0 <= x[0] < duration]
+    info = camera_model_to_info(sim.camera, make_header(start, CAMERA_FRAME))
+    return _Clip(images, imus, info, duration, sim.camera_to_imu_xyzw)
+
+
+def _proc_cpu_s(pid: int) -> float:
+    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    ticks = os.sysconf("SC_CLK_TCK")
+    return (int(fields[11]) + int(fields[12])) / ticks
+
+
+def _proc_rss_mb(pid: int) -> float:
+    for line in open(f"/proc/{pid}/status"):
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def measure(
+    clip: _Clip,
+    speed: float = 1.0,
+    seconds: float = 10.0,
+    warmup_s: float = 2.0,
+    max_features: int = 1000,
+    domain: int | None = None,
+    node_args: Sequence[str] = (),
+) -> Measurement:
+    """Run owl_node, publish ``clip`` looped at ``speed`` x its rate, measure (see module)."""
+    import rclpy
+    from geometry_msgs.msg import Vector3
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+    from sensor_msgs.msg import CameraInfo, Image, Imu, PointCloud2
+
+    from msg_adapters.stamps import header_to_ns, ns_to_stamp
+
+    dom = domain if domain is not None else 150 + os.getpid() % 80
+    env = {**os.environ, "ROS_DOMAIN_ID": str(dom)}
+    env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    q = clip.rotation
+    cmd = [sys.executable, "-m", "owl_ros.node", "--ros-args"]
+    cmd += [
+        "-r",
+        "image:=/lat/image",
+        "-r",
+        "camera_info:=/lat/camera_info",
+        "-r",
+        "imu:=/lat/imu",
+    ]
+    cmd += ["-p", f"camera_to_imu_rotation_xyzw:=[{q[0]},{q[1]},{q[2]},{q[3]}]"]
+    cmd += ["-p", f"max_features:={max_features}", *node_args]
+    node_proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    context = Context()
+    rclpy.init(context=context, domain_id=dom)
+    node = rclpy.create_node("owl_latency", context=context)
+    arrivals: list[tuple[int, int, int]] = []  # (stamp, arrival wall ns, points)
+
+    def on_cloud(msg: Any) -> None:
+        arrivals.append((header_to_ns(msg.header), time.time_ns(), int(msg.width)))
+
+    node.create_subscription(
+        PointCloud2,
+        "/owl/points",
+        on_cloud,
+        QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE),
+    )
+    pub_img = node.create_publisher(Image, "/lat/image", qos_profile_sensor_data)
+    pub_info = node.create_publisher(CameraInfo, "/lat/camera_info", qos_profile_sensor_data)
+    pub_imu = node.create_publisher(Imu, "/lat/imu", QoSProfile(depth=100))
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    stop = threading.Event()
+    spinner = threading.Thread(
+        target=lambda: [executor.spin_once(timeout_sec=0.05) for _ in iter(stop.is_set, True)],
+        daemon=True,
+    )
+    spinner.start()
+    sent: list[int] = []
+    try:
+        deadline = time.monotonic() + 30
+        while pub_img.get_subscription_count() < 1 or node.count_publishers("/owl/points") < 1:
+            if time.monotonic() > deadline or node_proc.poll() is not None:
+                raise RuntimeError("owl_node did not come up")
+            time.sleep(0.05)
+        time.sleep(1.0)
+        events = sorted(
+            [(t, 0, m, None) for t, m in clip.images] + [(t, 1, m, w) for t, m, w in clip.imus],
+            key=lambda e: (e[0], e[1]),
+        )
+        clip_ns = clip.duration_ns
+        t0 = time.time_ns() + 200_000_000
+        end = t0 + round((warmup_s + seconds) * 1e9)
+        window = t0 + round(warmup_s * 1e9)
+        cpu0 = wall0 = None
+        loop = 0
+        while time.time_ns() < end and node_proc.poll() is None:
+            for offset, kind, msg, rate in events:
+                stamp = t0 + round((loop * clip_ns + offset) / speed)
+                wait = (stamp - time.time_ns()) * 1e-9
+                if wait > 0:
+                    time.sleep(wait)
+                if cpu0 is None and stamp >= window:
+                    cpu0, wall0 = _proc_cpu_s(node_proc.pid), time.monotonic()
+                msg.header.stamp = ns_to_stamp(stamp)
+                if kind == 0:
+                    clip.info.header.stamp = msg.header.stamp
+                    pub_img.publish(msg)
+                    pub_info.publish(clip.info)
+                    if stamp >= window:
+                        sent.append(stamp)
+                else:
+                    w = rate * speed
+                    msg.angular_velocity = Vector3(x=float(w[0]), y=float(w[1]), z=float(w[2]))
+                    pub_imu.publish(msg)
+                if stamp >= end:
+                    break
+            loop += 1
+        time.sleep(1.0)
+        cpu1, wall1 = _proc_cpu_s(node_proc.pid), time.monotonic()
+        rss = _proc_rss_mb(node_proc.pid)
+    finally:
+        stop.set()
+        spinner.join(timeout=2)
+        node_proc.send_signal(signal.SIGINT)
+        try:
+            node_proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            node_proc.kill()
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    sent_set = set(sent)
+    got = [(s, a, n) for s, a, n in arrivals if s in sent_set]
+    lat = np.array([(a - s) * 1e-6 for s, a, _ in got]) if got else np.array([np.nan])
+    pts = [n for _, _, n in got if n > 0]
+    cpu = 100.0 * (cpu1 - cpu0) / (wall1 - wall0) if cpu0 is not None and wall0 else np.nan
+    frame_ns = clip.images[1][0] - clip.images[0][0]
+    return Measurement(
+        input_rate_hz=round(1e9 / frame_ns * speed, 2),
+        width=int(clip.info.width),
+        height=int(clip.info.height),
+        max_features=max_features,
+        images_sent=len(sent),
+        clouds=len(got),
+        kept_up=len(got) / max(len(sent), 1),
+        latency_ms_p50=float(np.percentile(lat, 50)),
+        latency_ms_p95=float(np.percentile(lat, 95)),
+        latency_ms_max=float(np.max(lat)),
+        cpu_percent=float(cpu),
+        rss_mb=rss,
+        points_per_cloud=float(np.mean(pts)) if pts else 0.0,
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; prints one JSON object per measured speed."""
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenario", default="street")
+    p.add_argument("--width", type=int, default=640)
+    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--rate", type=float, default=30.0, help="clip frame rate, Hz")
+    p.add_argument("--clip-seconds", type=float, default=2.0, help="rendered clip, s")
+    p.add_argument("--seconds", type=float, default=10.0, help="measurement window, s")
+    p.add_argument("--max-features", type=int, default=1000)
+    p.add_argument("--speed", type=float, nargs="+", default=[1.0], help="rate factors")
+    args = p.parse_args(argv)
+    clip = render_clip(args.scenario, args.clip_seconds, args.width, args.height, args.rate)
+    for speed in args.speed:
+        m = measure(clip, speed, args.seconds, max_features=args.max_features)
+        print(json.dumps(asdict(m)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
