@@ -262,12 +262,14 @@ def essential_two_view(
     inl = mask.reshape(-1) > 0
     # recoverPose's own mask also drops points farther than 50 baselines (its distance
     # threshold): those are valid correspondences, so the RANSAC mask defines the inliers.
-    n_front, rot, t, _ = cv2.recoverPose(emat, x0, x1, focal=1.0, pp=(0.0, 0.0), mask=mask.copy())
+    n_front, rot_cv, t_cv, _ = cv2.recoverPose(
+        emat, x0, x1, focal=1.0, pp=(0.0, 0.0), mask=mask.copy()
+    )
     if np.count_nonzero(inl) < opts.min_points or int(n_front) == 0:
         return _empty(n, f"recoverPose kept {int(n_front)} of {int(np.count_nonzero(inl))}")
-    t = np.asarray(t, dtype=np.float64).reshape(3)
+    t: FloatArray = np.asarray(t_cv, dtype=np.float64).reshape(3)
     heading = -t / np.linalg.norm(t)
-    rot = np.asarray(rot, dtype=np.float64)
+    rot: FloatArray = np.asarray(rot_cv, dtype=np.float64)
     inliers = np.zeros(n, dtype=bool)
     inliers[idx[inl]] = True
     ros = triangulate_current(a, b, rot, heading, interval_s, opts.min_parallax_deg)
