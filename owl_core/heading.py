@@ -64,7 +64,7 @@ class HeadingOptions:
     cauchy_sigma: float = 2.5
     min_points: int = 8
     min_sin: float = 0.05
-    still_ratio: float = 2.0
+    still_ratio: float = 1.5
     min_translation_snr: float = 3.0
     max_points: int = 400
 
@@ -92,7 +92,9 @@ class MotionEstimate:
             (f_true = f + delta x e); the gyro bias estimate should move by -delta.
         rotation_cov: (3, 3) posterior covariance of ``rotation_error`` (it includes the
             prior), (rad/s)^2.
-        translating: False when a rotation alone explains the flow.
+        translating: False when a rotation alone explains the flow, or when the flow is too
+            weak to separate translation from rotation (then ``rotation_error`` is zero with
+            the prior covariance: no information).
         inliers: (N,) bool, points consistent with the static-scene motion.
         residuals: (N,) float64 normalised coplanarity residuals (in standard deviations);
             NaN for points not used.
@@ -299,7 +301,7 @@ def estimate_motion(
     rot_delta, rot_cov, rot_res = _rotation_only(es, fs, ss, prior_inv)
     robust_rms = float(np.median(rot_res)) / 1.1774  # median of a chi(2) variable
     flow_snr = float(np.median(np.linalg.norm(fs, axis=1) / ss))
-    if robust_rms < opts.still_ratio or flow_snr < opts.min_translation_snr:
+    if robust_rms < opts.still_ratio:
         r_all = fu - cross(eu, rot_delta)
         inl = np.zeros(n, dtype=bool)
         inl[usable] = np.sqrt(np.einsum("na,na->n", r_all, r_all)) / su < opts.inlier_sigma * 1.5
@@ -307,6 +309,14 @@ def estimate_motion(
             None, np.inf, rot_delta, rot_cov, False, inl, residuals,
             "no translation: the flow is explained by a rotation alone "
             f"(residual {robust_rms:.2f} sigma, flow {flow_snr:.1f} sigma)",
+        )  # fmt: skip
+    if flow_snr < opts.min_translation_snr:
+        # Some flow is left after removing a rotation, but too little to tell translation
+        # from rotation: no heading, and no information on the rotation either.
+        return MotionEstimate(
+            None, np.inf, zero3, prior.copy(), False, none_inliers, residuals,
+            f"too little flow for a heading (median {flow_snr:.1f} sigma, rotation-only "
+            f"residual {robust_rms:.2f} sigma): the translation is too slow or too far",
         )  # fmt: skip
 
     # 2. RANSAC on the heading with delta = 0: h = n_a x n_b for two random points.
@@ -428,12 +438,14 @@ class GyroBiasFilter:
         self.bias = b0.copy()
         self.cov = np.eye(3) * initial_sigma**2
         self.updates = 0
+        self.rejected = 0
 
     def reset(self) -> None:
         """Back to the initial bias and uncertainty."""
         self.bias = self._initial_bias.copy()
         self.cov = np.eye(3) * self._initial_sigma**2
         self.updates = 0
+        self.rejected = 0
 
     @property
     def bias_camera(self) -> FloatArray:
@@ -457,7 +469,8 @@ class GyroBiasFilter:
         posterior_cov_cam: npt.ArrayLike,
         prior_cov_cam: npt.ArrayLike,
         inflation: float = 1.0,
-    ) -> None:
+        gate: float = 16.3,
+    ) -> bool:
         """Apply one frame's leftover-rotation estimate (camera frame, relative to ``bias``).
 
         :func:`estimate_motion` returns a posterior that already includes its prior
@@ -472,6 +485,12 @@ class GyroBiasFilter:
             posterior_cov_cam: (3, 3) its posterior covariance, (rad/s)^2.
             prior_cov_cam: (3, 3) the prior covariance the estimate used, (rad/s)^2.
             inflation: measurement-information divisor, >= 1.
+            gate: innovation gate: a posterior delta whose squared Mahalanobis distance under
+                the prior exceeds this (chi-square, 3 dof; 16.3 = 99.9 %) is rejected as an
+                outlier (e.g. translation mistaken for rotation). inf disables the gate.
+
+        Returns:
+            True when the measurement was applied, False when the gate rejected it.
         """
         d = np.asarray(rotation_error_cam, dtype=np.float64)
         c = np.asarray(posterior_cov_cam, dtype=np.float64)
@@ -485,6 +504,9 @@ class GyroBiasFilter:
             raise InvalidInputError(f"inflation must be >= 1, got {inflation}")
         info_post = np.linalg.inv(c)
         info_prior = np.linalg.inv(p)
+        if float(d @ info_prior @ d) > gate:
+            self.rejected += 1
+            return False
         info_meas = info_post - info_prior
         vals, vecs = np.linalg.eigh(0.5 * (info_meas + info_meas.T))
         info_meas = (vecs * np.maximum(vals, 0.0)) @ vecs.T / inflation
@@ -498,3 +520,4 @@ class GyroBiasFilter:
         self.cov = self._rot @ new_cov_cam @ self._rot.T
         self.cov = 0.5 * (self.cov + self.cov.T)
         self.updates += 1
+        return True
