@@ -205,13 +205,18 @@ def stop_node(proc: subprocess.Popen[str]) -> tuple[int, str]:
     return proc.returncode, err
 
 
-def check_clouds(clouds: Sequence[Any], stamps: list[int]) -> dict[int, Any]:
+def check_clouds(
+    clouds: Sequence[Any], stamps: list[int], diagnostics: Any = None
+) -> dict[int, Any]:
     """Contract checks; returns stamp -> cloud; asserts >= 90 % after warm-up have points."""
     by_stamp = {header_to_ns(c.header): c for c in clouds}
     assert set(by_stamp) <= set(stamps)  # headers are the images' headers
     after = stamps[WARMUP_FRAMES:]
     full = [t for t in after if t in by_stamp and by_stamp[t].width > 0]
-    assert len(full) >= 0.9 * len(after), f"{len(full)} of {len(after)} frames gave points"
+    why = ""
+    if diagnostics is not None and diagnostics.diagnostics:
+        why = " ".join(f"{s}: {diagnostics.status(s)}" for s in ("processing", "gyro", "input"))
+    assert len(full) >= 0.9 * len(after), f"{len(full)} of {len(after)} gave points; {why}"
     for c in clouds:
         assert c.header.frame_id == "camera_optical_frame"
         assert [f.name for f in c.fields] == [name for name, _, _ in OWL_FIELDS]
@@ -261,7 +266,7 @@ def test_replay_at_real_rate(
         code, err = stop_node(node)
     assert code == 0, err
     assert "Traceback" not in err
-    check_clouds(collector.clouds, frame_stamps)
+    check_clouds(collector.clouds, frame_stamps, collector)
     assert check_headings(collector.headings, reference) >= 0.9 * len(reference.headings)
     _, _, values = collector.status("processing")
     assert int(values["frames_processed_total"]) >= 0.9 * len(frame_stamps)
@@ -283,7 +288,7 @@ def test_replay_with_sim_time_and_clock(
     finally:
         code, err = stop_node(node)
     assert code == 0, err
-    check_clouds(collector.clouds, frame_stamps)
+    check_clouds(collector.clouds, frame_stamps, collector)
     assert check_headings(collector.headings, reference) >= 0.9 * len(reference.headings)
     # diagnostics are stamped with the node's clock: the bag's (simulated) time
     stamps = [header_to_ns(d.header) for d in collector.diagnostics]
@@ -354,7 +359,7 @@ def test_runtime_parameters_qos_events_and_time_jump(
     finally:
         code, err = stop_node(node)
     assert code == 0, err
-    check_clouds(collector.clouds[first:], frame_stamps)  # recovered without a restart
+    check_clouds(collector.clouds[first:], frame_stamps, collector)  # recovered without a restart
     _, _, proc = collector.status("processing")
     assert int(proc["time_jumps_total"]) >= 1
     assert "engine reset" in proc["last_time_jump"]
