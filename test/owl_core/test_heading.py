@@ -194,3 +194,30 @@ def test_bad_inputs_raise() -> None:
         hd.HeadingOptions(min_points=1)
     with pytest.raises(InvalidInputError, match="camera_to_imu"):
         hd.GyroBiasFilter(camera_to_imu=np.eye(2))
+
+
+def test_weak_translation_gives_neither_heading_nor_rotation() -> None:
+    """Flow a rotation does not explain but too weak (about 2 sigma) to tell translation
+    from rotation: reading it as rotation would pull the bias estimate, so no information."""
+    rng = np.random.default_rng(21)
+    e, f, _, _ = scene(rng, t=0.1 * T)
+    est = hd.estimate_motion(e, f, SIGMA, PRIOR)
+    assert est.heading is None and not est.translating
+    assert "too little flow" in est.reason
+    np.testing.assert_array_equal(est.rotation_error, 0.0)
+    np.testing.assert_array_equal(est.rotation_cov, PRIOR)
+    filt = hd.GyroBiasFilter()
+    filt.update(est.rotation_error, est.rotation_cov, PRIOR)
+    np.testing.assert_array_equal(filt.bias, 0.0)
+    np.testing.assert_allclose(filt.cov, PRIOR)
+
+
+def test_bias_filter_gate_rejects_outliers() -> None:
+    filt = hd.GyroBiasFilter(initial_sigma=1e-3)
+    prior = filt.cov_camera
+    # a posterior 10 prior sigmas away (e.g. translation read as rotation)
+    assert not filt.update(np.array([0.01, 0.0, 0.0]), prior * 0.01, prior)
+    assert filt.rejected == 1 and filt.updates == 0
+    np.testing.assert_array_equal(filt.bias, 0.0)
+    assert filt.update(np.array([0.001, 0.0, 0.0]), prior * 0.5, prior)
+    assert filt.bias[0] < 0  # true bias = bias - delta
