@@ -72,6 +72,9 @@ class EngineOptions:
         min_neighbours: fewer usable neighbours -> no L from the local rule, count (>= 3).
         looming_iterations: robust reweighting iterations of the local rule, count (>= 0).
         min_quality: points below this quality (0..1) are flagged LOW_QUALITY.
+        quality_rel_sigma: relative 1-sigma of r/|t| (dimensionless) at which a point's
+            quality is halved by its precision factor ``1 / (1 + (rel_sigma / this)^2)``;
+            quality = local-fit quality x precision factor x coplanarity factor.
         min_tor: |ToR| at or below this (1/s) means no translation signal at the point.
         moving_sigma: a point whose coplanarity residual, or whose two L routes, differ by
             more than this many standard deviations is flagged MOVING.
@@ -112,6 +115,7 @@ class EngineOptions:
     min_neighbours: int = 5
     looming_iterations: int = 2
     min_quality: float = 0.3
+    quality_rel_sigma: float = 0.1
     min_tor: float = 1e-6
     moving_sigma: float = 4.0
     heading_min_sin: float = 0.1
@@ -171,6 +175,7 @@ class EngineOptions:
             "gyro_noise_density",
             "no_gyro_rotation_sigma",
             "max_frame_gap_s",
+            "quality_rel_sigma",
         )
         for name in positive:
             value = getattr(self, name)
@@ -775,7 +780,13 @@ class OwlEngine:
         q_local = (
             np.where(local.valid, local.quality, 1.0) if local is not None else np.ones(idx.size)
         )
-        quality = q_local / (1.0 + (res / opts.moving_sigma) ** 2)
+        # precision: relative 1-sigma of L against |ToR| (= relative sigma of r/|t|)
+        tor_ref = np.sqrt(np.nan_to_num(at_ref.tor[:, 0]) ** 2 + np.sum(omega**2, axis=1))
+        rel_sigma = np.sqrt(np.where(fused.valid, fused.variance, np.inf)) / np.maximum(
+            tor_ref, 1e-12
+        )
+        q_precision = 1.0 / (1.0 + (rel_sigma / opts.quality_rel_sigma) ** 2)
+        quality = q_local * q_precision / (1.0 + (res / opts.moving_sigma) ** 2)
         flags = fused.flags | flags_all
         flags = flags | np.where(moving, np.uint8(PointFlag.MOVING), np.uint8(0))
         flags = flags | np.where(

@@ -44,6 +44,7 @@ class Score:
     num_points: list[int] = field(default_factory=list)
     reasons: list[tuple[str, ...]] = field(default_factory=list)
     looming: list[float] = field(default_factory=list)
+    quality: list[float] = field(default_factory=list)
     moving_flagged_on_mover: int = 0
     mover_points: int = 0
     moving_flagged_on_static: int = 0
@@ -116,6 +117,7 @@ def score_frame(score: Score, frame: scenarios.Frame, res: FrameResult) -> None:
     tor_true = np.hypot(l_true, np.linalg.norm(np.cross(e, t), axis=1) / r)
     score.l_rel_err += list(np.abs(res.looming[ok] - l_true) / tor_true)
     score.looming += list(res.looming[ok])
+    score.quality += list(res.quality[ok])
 
 
 def run_scenario(
@@ -170,6 +172,9 @@ def test_static_street_accuracy_with_biased_gyro(biased_street: tuple[Score, Sco
     assert np.median(r) < 0.05  # measured 2.3 %
     assert np.percentile(r, 90) < 0.25  # measured 13 %
     assert np.median(score.l_rel_err) < 0.05  # measured 2.0 % of |ToR|
+    # quality ranks the points: the confident ones are several times more accurate
+    q = np.array(score.quality)
+    assert np.median(r[q >= 0.6]) < 0.5 * np.median(r[q < 0.3])
     # the stated heading sigma is realistic: most errors within 3 sigma
     z = h / np.array(score.heading_sigma_deg)
     assert np.mean(z < 3.0) > 0.8
