@@ -26,7 +26,7 @@ from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import Image, PointCloud2
 
 from bags import make_bag
 from bags.io import BagReader
@@ -366,3 +366,46 @@ def test_runtime_parameters_qos_events_and_time_jump(
     _, _, inputs = collector.status("input")
     assert int(inputs["qos_events_total"]) >= 1
     assert "owl/heading" in inputs["qos_last_event"] and "DURABILITY" in inputs["qos_last_event"]
+
+
+def test_overload_newest_frame_wins_latency_bounded(
+    ros_domain_env: dict[str, str], collector: Collector, bag: Path, frame_stamps: list[int]
+) -> None:
+    """Input at 3x real rate with the default queue: drops counted, latency bounded."""
+    debug: list[Any] = []
+    collector.node.create_subscription(
+        Image, "/owl/debug_image", debug.append, QoSProfile(depth=5)
+    )
+    cmd_args = ["--ros-args"]
+    for remap in REMAPS:
+        cmd_args += ["-r", remap]
+    cmd_args += ["-p", ROTATION, "-p", "diagnostics_period_s:=0.3"]
+    node = subprocess.Popen(
+        [sys.executable, "-m", "owl_ros.node", *cmd_args],
+        env=ros_domain_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        collector.wait_for_node()
+        replay(ros_domain_env, bag, "--rate", "3")
+        collector.wait_settled(1)
+    finally:
+        code, err = stop_node(node)
+    assert code == 0, err
+    stamps = [header_to_ns(c.header) for c in collector.clouds]
+    assert stamps == sorted(stamps) and set(stamps) <= set(frame_stamps)
+    _, _, proc = collector.status("processing")
+    dropped = int(proc["dropped_queue_full_total"])
+    assert dropped > 0 and len(stamps) + dropped <= len(frame_stamps)
+    # newest wins: a frame waits for at most queue_size (2) frames ahead of it
+    windows = [msg_to_records(d)[1] for d in collector.diagnostics]
+    for records in windows:
+        values = next(r for r in records if r.name == "owl: processing").value_map()
+        p95, slowest = float(values["latency_ms_p95"]), float(values["processing_ms_max"])
+        if not math.isnan(p95):
+            assert p95 <= 4 * slowest + 50, values  # (queue 2 + current + 1) frames
+    # the debug image was built while subscribed: header of its frame, tracks drawn
+    assert debug and debug[-1].encoding == "bgr8"
+    assert header_to_ns(debug[-1].header) in set(stamps)

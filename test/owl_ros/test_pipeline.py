@@ -440,3 +440,20 @@ def test_gyro_samples_before_camera_info_are_kept(feed: Feed) -> None:
         pipe.add_imu(imu, header_to_ns(imu.header))
     pipe.add_camera_info(feed.info)
     assert pipe.engine is not None and len(pipe.engine.gyro) == 40
+
+
+def test_compressed_png_gives_the_same_result_as_raw(feed: Feed) -> None:
+    from msg_adapters.image import array_to_compressed, image_to_array
+
+    compressed = [
+        array_to_compressed(image_to_array(m), "mono8", "png", header=m.header)
+        for m in feed.images[:10]
+    ]
+    raw = run(Pipeline(options(feed)), events(feed, images=feed.images[:10]))
+    comp = run(
+        Pipeline(options(feed, image_transport="compressed")), events(feed, images=compressed)
+    )
+    assert len(raw) == len(comp) == 10
+    for a, b in zip(raw, comp, strict=True):
+        assert a.header == b.header
+        assert bytes(a.cloud.data) == bytes(b.cloud.data)  # png is lossless
