@@ -9,6 +9,10 @@ PACKAGE = "owl_ros"
 # Each executable is registered once it is real; `ros2 run owl_ros <name>` finds
 # it under lib/owl_ros (setup.cfg), a pip/venv install puts it on PATH.
 CONSOLE_SCRIPTS = [
+    "owl_node = owl_ros.node:main",
+    "owl_process = owl_ros.process:main",
+    "owl_eval = owl_ros.eval:main",
+    "owl_bench = owl_ros.bench:main",
     "owl_make_bag = bags.make_bag:main",
     "owl_replay = bags.replay:main",
     "owl_record = bags.record:main",
