@@ -457,3 +457,27 @@ def test_compressed_png_gives_the_same_result_as_raw(feed: Feed) -> None:
     for a, b in zip(raw, comp, strict=True):
         assert a.header == b.header
         assert bytes(a.cloud.data) == bytes(b.cloud.data)  # png is lossless
+
+
+def test_rotation_only_no_points_reason_and_bias_keeps_updating() -> None:
+    sim = scenarios.get("rotation_only").simulate(
+        SimOptions(seconds=0.4, width=WIDTH, height=HEIGHT)
+    )
+    pipe = Pipeline(build_options({"camera_to_imu_rotation_xyzw": list(sim.camera_to_imu_xyzw)}))
+    pipe.add_camera_info(camera_model_to_info(sim.camera, make_header(0, CAMERA_FRAME)))
+    for imu in gyro_to_imus(sim.gyro_samples(), IMU_FRAME):
+        pipe.add_imu(imu, 0)
+    biases = []
+    for frame in sim.frames():
+        pipe.add_image(
+            array_to_image(frame.image, "mono8", header=make_header(frame.stamp_ns, CAMERA_FRAME)),
+            frame.stamp_ns,
+        )
+        (out,) = pipe.poll(frame.stamp_ns)
+        assert out.result.num_points == 0 and out.heading is None
+        _, values, _ = diag(pipe, "gyro")
+        biases.append([float(values[f"bias_{a}_rad_s"]) for a in "xyz"])
+    message, _, level = diag(pipe, "processing")
+    assert level == 1 and message.startswith("no points: no translation")
+    moves = np.abs(np.diff(np.array(biases[5:]), axis=0)).max(axis=1)
+    assert np.all(moves > 0)  # the estimate changes every frame once tracks are long enough
