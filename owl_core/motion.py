@@ -318,6 +318,8 @@ def fit_local_looming(
         raise InvalidInputError(f"min_neighbours must be >= 2, got {min_neighbours}")
     if not noise > 0.0:
         raise InvalidInputError(f"noise must be > 0, got {noise}")
+    if iterations < 0:
+        raise InvalidInputError(f"iterations must be >= 0, got {iterations}")
 
     d, dv, f2 = gnomonic_chart(e, f, nb, nf)
     mask = mask & np.all(np.isfinite(d), axis=2) & np.all(np.isfinite(dv), axis=2)
