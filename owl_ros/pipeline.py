@@ -513,6 +513,11 @@ class Pipeline:
         except OwlError as err:
             self._skip("engine_error", f"engine: {err}")
             return None
+        except Exception as err:  # never let one frame stop the node; say what happened
+            self._skip("engine_error", f"engine: {type(err).__name__}: {err}")
+            self._last_stamp = None
+            engine.reset()
+            return None
         self._last_stamp = stamp
         self._last_result = result
         if not covered:

@@ -286,6 +286,7 @@ def process_bag(
         headings: list[npt.NDArray[np.float64]] = []
         sigmas: list[float] = []
         reasons: Counter[str] = Counter()
+        undecodable: Counter[str] = Counter()
         points = 0
         frames = 0
         done = 0
@@ -333,8 +334,14 @@ def process_bag(
                 if raw.topic == TF_STATIC and not decided:
                     transforms.extend(bag.deserialize(raw).transforms)
                 elif role is not None:
-                    msg = deserialize_message(raw.data, classes[raw.topic])
-                    if role == "imu":
+                    try:
+                        msg = deserialize_message(raw.data, classes[raw.topic])
+                    except Exception:  # a damaged message: skip it, count it
+                        undecodable[raw.topic] += 1
+                        msg = None
+                    if msg is None:
+                        pass
+                    elif role == "imu":
                         if imu_frame is None:
                             imu_frame = msg.header.frame_id
                         pipeline.add_imu(msg, now)
@@ -376,6 +383,7 @@ def process_bag(
             diagnostics(last_ns)
             report(done, frames, True)
             totals = dict(pipeline.totals)
+            totals.update({f"undecodable {t}": n for t, n in undecodable.items()})
     return Summary(
         out_path=out,
         images=totals.get("images", 0),
