@@ -31,7 +31,7 @@ from sensor_msgs.msg import Image, PointCloud2
 from bags import make_bag
 from bags.io import BagReader
 from msg_adapters.diagnostics import msg_to_records
-from msg_adapters.pointcloud import OWL_FIELDS, cloud_to_array
+from msg_adapters.pointcloud import OWL_FIELDS, cloud_speed, cloud_to_array
 from msg_adapters.stamps import header_to_ns
 from owl_ros.process import ProcessOptions, Summary, process_bag
 
@@ -41,6 +41,7 @@ SECONDS = 1.5
 WARMUP_FRAMES = 10  # tracks need 5 frames; the first frames also pay for lazy imports
 INPUTS = ("/camera/image_raw", "/camera/camera_info", "/imu/data")
 REMAPS = ("image:=/camera/image_raw", "camera_info:=/camera/camera_info", "imu:=/imu/data")
+TWIST = "/ground_truth/twist"
 ROTATION = "camera_to_imu_rotation_xyzw:=[-0.5,0.5,-0.5,0.5]"
 # The test machine is shared by several jobs (2 cores): a deeper queue than the default
 # lets the node ride out moments of CPU starvation, so these tests check that it keeps up
@@ -185,8 +186,23 @@ def start_node(env: dict[str, str], *ros_args: str) -> subprocess.Popen[str]:
     )
 
 
+def truth_speeds(bag: Path) -> dict[int, float]:
+    """Image stamp -> ground-truth camera speed, m/s."""
+    from geometry_msgs.msg import TwistStamped
+    from rclpy.serialization import deserialize_message
+
+    out = {}
+    with BagReader(bag) as reader:
+        for raw in reader.messages([TWIST]):
+            msg = deserialize_message(raw.data, TwistStamped)
+            v = msg.twist.linear
+            out[header_to_ns(msg.header)] = math.sqrt(v.x * v.x + v.y * v.y + v.z * v.z)
+    return out
+
+
 def replay(env: dict[str, str], bag: Path, *extra: str) -> None:
-    cmd = [sys.executable, "-m", "bags.replay", str(bag), "--topics", *INPUTS, "-q"]
+    topics = [] if "--topics" in extra else ["--topics", *INPUTS]
+    cmd = [sys.executable, "-m", "bags.replay", str(bag), *topics, "-q"]
     cmd += ["--wait-for-subscribers", "--wait-timeout", "20", *extra]
     run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60, check=False)
     assert run.returncode == 0, run.stderr
@@ -280,21 +296,45 @@ def test_replay_with_sim_time_and_clock(
     reference: Summary,
     frame_stamps: list[int],
 ) -> None:
-    node = start_node(ros_domain_env, "use_sim_time:=true")
+    # also the metric scale: ground-truth twist as the speed source
+    node = start_node(
+        ros_domain_env,
+        "use_sim_time:=true",
+        "speed_source:=twist",
+        f"speed_topic:={TWIST}",
+    )
     try:
         collector.wait_for_node()
-        replay(ros_domain_env, bag, "--clock")
+        replay(ros_domain_env, bag, "--clock", "--topics", *INPUTS, TWIST)
         collector.wait_settled(1)
     finally:
         code, err = stop_node(node)
     assert code == 0, err
-    check_clouds(collector.clouds, frame_stamps, collector)
+    by_stamp = check_clouds(collector.clouds, frame_stamps, collector)
     assert check_headings(collector.headings, reference) >= 0.9 * len(reference.headings)
+    speeds = truth_speeds(bag)
+    metric = [c for c in by_stamp.values() if c.width > 0]
+    for cloud in metric:  # x y z in metres, and the cloud says with which speed
+        assert cloud_speed(cloud_to_array(cloud)) == pytest.approx(
+            speeds[header_to_ns(cloud.header)], rel=1e-6
+        )
     # diagnostics are stamped with the node's clock: the bag's (simulated) time
     stamps = [header_to_ns(d.header) for d in collector.diagnostics]
     in_bag = [t for t in stamps if frame_stamps[0] - 10**9 <= t <= frame_stamps[-1] + 10**9]
     assert in_bag, stamps
     assert all(t <= frame_stamps[-1] + 10**9 for t in stamps)  # never wall time
+
+
+def test_help_lists_parameters() -> None:
+    run = subprocess.run(
+        [sys.executable, "-m", "owl_ros.node", "--help"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert run.returncode == 0
+    assert "camera_to_imu_rotation_xyzw" in run.stdout and "read-only" in run.stdout
 
 
 @pytest.mark.parametrize(
