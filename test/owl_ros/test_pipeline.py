@@ -481,3 +481,36 @@ def test_rotation_only_no_points_reason_and_bias_keeps_updating() -> None:
     assert level == 1 and message.startswith("no points: no translation")
     moves = np.abs(np.diff(np.array(biases[5:]), axis=0)).max(axis=1)
     assert np.all(moves > 0)  # the estimate changes every frame once tracks are long enough
+
+
+def test_imu_publisher_disappears_and_comes_back(feed: Feed) -> None:
+    """IMU silent for > 1 s (arrival time): frames are not held back, say why, and points
+    return once the IMU is back, without a restart."""
+    stamps = [header_to_ns(i.header) for i in feed.images]
+    lost_from, back_at = stamps[7] + 1_000_000, stamps[10] + 1_000_000
+    imus = [m for m in feed.imus if not lost_from < header_to_ns(m.header) < back_at]
+    evs = []
+    for t, kind, msg in events(feed, imus=imus):
+        silent_gap = 2_000_000_000 if t > lost_from else 0  # arrivals 2 s later
+        evs.append((t + silent_gap, kind, msg))
+    pipe = Pipeline(options(feed))
+    outs = []
+    for now, kind, msg in evs:
+        if kind == "imu":
+            pipe.add_imu(msg, now)
+        elif kind == "info":
+            pipe.add_camera_info(msg)
+        else:
+            pipe.add_image(msg, now)
+            if header_to_ns(msg.header) in stamps[8:11]:
+                # IMU silent for > 1 s: processed at once, not after imu_wait_s
+                got = pipe.poll(now)
+                assert [o.header for o in got][-1:] == [msg.header]
+                assert any("IMU does not cover" in r for r in got[-1].result.reasons)
+                outs += got
+                continue
+        outs += pipe.poll(now)
+    outs += pipe.poll(evs[-1][0], flush=True)
+    assert len(outs) == len(stamps)
+    assert outs[-1].result.num_points > 0  # recovered
+    assert diag(pipe, "input")[1]["imu_gaps_total"] == "1"
