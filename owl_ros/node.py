@@ -354,6 +354,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     stop = threading.Event()
     rclpy.init(args=[PROG, *args], signal_handler_options=SignalHandlerOptions.NO)
+    # SIGINT/SIGTERM end the spin loop below; the node then shuts down in order
+    old = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}
     try:
         node = OwlNode()
     except ParameterError as err:
@@ -361,8 +363,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{PROG}: error: {line}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
-    # SIGINT/SIGTERM end the spin loop below; the node then shuts down in order
-    old = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}
     executor = _executor()
     executor.add_node(node)
     try:
