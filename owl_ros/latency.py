@@ -267,10 +267,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=10.0, help="measurement window, s")
     p.add_argument("--max-features", type=int, default=1000)
     p.add_argument("--speed", type=float, nargs="+", default=[1.0], help="rate factors")
+    p.add_argument(
+        "-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
+        help="extra owl_node parameter, repeatable",
+    )  # fmt: skip
     args = p.parse_args(argv)
     clip = render_clip(args.scenario, args.clip_seconds, args.width, args.height, args.rate)
     for speed in args.speed:
-        m = measure(clip, speed, args.seconds, max_features=args.max_features)
+        node_args = [x for item in args.param for x in ("-p", item)]
+        m = measure(clip, speed, args.seconds, max_features=args.max_features, node_args=node_args)
         print(json.dumps(asdict(m)), flush=True)
     return 0
 
