@@ -54,7 +54,6 @@ from bags.sensors import ImuOptions  # noqa: E402
 from owl_core.baseline import BaselineFrame, BaselineOptions, TwoViewBaseline  # noqa: E402
 from owl_core.engine import EngineOptions, OwlEngine  # noqa: E402
 from owl_core.errors import OwlError  # noqa: E402
-from owl_core.tracker import Tracks  # noqa: E402
 from owl_core.types import FrameResult, ImageFrame  # noqa: E402
 from owl_ros.eval import Estimate, FrameScore, Truth, score_frame, summarize  # noqa: E402
 
@@ -212,27 +211,6 @@ def load_frames(
 # ------------------------------------------------------------------------ one case
 
 
-def _tracks_tap(engine: OwlEngine) -> Callable[[], Tracks | None]:
-    """A getter of the tracks of the engine's latest frame.
-
-    Uses ``OwlEngine.last_tracks`` when the engine has it; otherwise wraps the engine's
-    tracker (requested from core-owl: remove this fallback when last_tracks lands).
-    """
-    if hasattr(type(engine), "last_tracks"):
-        return lambda: engine.last_tracks  # type: ignore[attr-defined, no-any-return]
-    tracker = engine._tracker
-    box: dict[str, Tracks] = {}
-    original = tracker.track
-
-    def track(*args: Any, **kwargs: Any) -> Tracks:
-        out = original(*args, **kwargs)
-        box["tracks"] = out
-        return out
-
-    tracker.track = track  # type: ignore[method-assign]
-    return lambda: box.get("tracks")
-
-
 def owl_estimate(res: FrameResult) -> Estimate:
     """What owl_eval scores of an engine FrameResult."""
     return Estimate(
@@ -278,7 +256,6 @@ def run_case(
         ),
     )
     engine.add_gyro(sim.gyro_samples())
-    last_tracks = _tracks_tap(engine)
     gyro = engine.gyro
 
     def rotation(t0: int, t1: int) -> npt.NDArray[np.float64] | None:
@@ -304,7 +281,7 @@ def run_case(
         run.track_s += track_s
         run.estimate_s["owl"] += res.timings.get("total", 0.0) - track_s
         run.scores["owl"].append(score_frame(owl_estimate(res), truth, truth_bias))
-        tracks = last_tracks()
+        tracks = engine.last_tracks  # the very tracks OWL used for this frame
         if tracks is not None:
             n_tracks += tracks.num_tracks
         for name, base in baselines.items():

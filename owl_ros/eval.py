@@ -507,16 +507,11 @@ def read_results(path: str | Path, points_topic: str | None = None) -> list[Any]
 
 def truth_info(path: str | Path) -> dict[str, Any]:
     """The truth bag's owl_make_bag options (metadata custom_data), {} when absent."""
-    meta = Path(path) / "metadata.yaml"
-    if not meta.is_file():
-        return {}
-    import yaml
-
+    with BagReader(path) as bag:
+        text = bag.custom_data.get("owl_make_bag")
     try:
-        doc = yaml.safe_load(meta.read_text())
-        text = doc["rosbag2_bagfile_information"].get("custom_data", {}).get("owl_make_bag")
         return dict(json.loads(text)) if text else {}
-    except (yaml.YAMLError, KeyError, TypeError, AttributeError, ValueError):
+    except (ValueError, TypeError):
         return {}
 
 
