@@ -111,7 +111,8 @@ PARAMS: tuple[Param, ...] = (
         "queue_size",
         "int",
         2,
-        "images waiting for processing, count; when full the oldest is dropped (newest wins)",
+        "images waiting for processing, count; when full the oldest is dropped (newest "
+        "wins); 1 gives the lowest latency under overload, 2 rides out jitter",
         low=1,
         high=100,
         read_only=True,
