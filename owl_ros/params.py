@@ -642,3 +642,47 @@ def descriptor(p: Param) -> Any:
             )
         ]
     return desc
+
+
+def config_yaml() -> str:
+    """The text of ``config/owl.yaml``: every parameter with its default, meaning, range
+    and read-only flag, as a ROS 2 parameter file for node ``owl``."""
+    import textwrap
+
+    out = [
+        "# Parameters of node 'owl' (executable owl_node) and of owl_process",
+        "# (-p / --params-file). Load with:",
+        "#   ros2 run owl_ros owl_node --ros-args --params-file config/owl.yaml",
+        "# Every parameter is listed with its default; 'read-only' ones need a restart, the",
+        "# others may be changed at runtime (ros2 param set /owl NAME VALUE; the engine then",
+        "# restarts its tracks). Doubles need a decimal point (1.0, not 1): ROS 2 parameter",
+        "# types are strict. Generated from owl_ros/params.py by params.config_yaml().",
+        "owl:",
+        "  ros__parameters:",
+    ]
+
+    def fmt(p: Param) -> str:
+        v = p.default
+        if p.kind == "bool":
+            return "true" if v else "false"
+        if p.kind == "string":
+            return f'"{v}"'
+        if p.kind == "double":
+            return repr(float(v))
+        if p.kind == "double_array":
+            return "[" + ", ".join(repr(float(x)) for x in v) + "]"
+        return str(v)
+
+    for p in PARAMS:
+        out += textwrap.wrap(
+            f"{p.description}.", 92, initial_indent="    # ", subsequent_indent="    #   "
+        )
+        extra = []
+        if p.constraint_text():
+            extra.append(f"valid: {p.constraint_text()}")
+        if p.read_only:
+            extra.append("read-only")
+        if extra:
+            out.append(f"    # ({'; '.join(extra)})")
+        out.append(f"    {p.name}: {fmt(p)}")
+    return "\n".join(out) + "\n"

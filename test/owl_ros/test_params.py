@@ -164,3 +164,7 @@ def test_rviz_config_shows_cloud_by_intensity_field_and_heading(repo_root: Path)
     assert cloud["Channel Name"] in {name for name, _, _ in OWL_FIELDS}
     topics = {d.get("Topic", {}).get("Value") for d in displays}
     assert "owl/heading_marker" in topics and "owl/debug_image" in topics
+
+
+def test_config_yaml_is_generated_from_the_table(repo_root: Path) -> None:
+    assert (repo_root / "config" / "owl.yaml").read_text() == P.config_yaml()
