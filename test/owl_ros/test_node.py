@@ -42,6 +42,7 @@ WARMUP_FRAMES = 10  # tracks need 5 frames; the first frames also pay for lazy i
 INPUTS = ("/camera/image_raw", "/camera/camera_info", "/imu/data")
 REMAPS = ("image:=/camera/image_raw", "camera_info:=/camera/camera_info", "imu:=/imu/data")
 TWIST = "/ground_truth/twist"
+CONFIG = Path(__file__).resolve().parents[2] / "config" / "owl.yaml"
 ROTATION = "camera_to_imu_rotation_xyzw:=[-0.5,0.5,-0.5,0.5]"
 # The test machine is shared by several jobs (2 cores): a deeper queue than the default
 # lets the node ride out moments of CPU starvation, so these tests check that it keeps up
@@ -171,7 +172,8 @@ def collector(ros_domain_env: dict[str, str]) -> Iterator[Collector]:
 
 
 def start_node(env: dict[str, str], *ros_args: str) -> subprocess.Popen[str]:
-    args = ["--ros-args"]
+    """owl_node with the shipped config/owl.yaml, the bag's topics and extra -p values."""
+    args = ["--ros-args", "--params-file", str(CONFIG)]
     for remap in REMAPS:
         args += ["-r", remap]
     args += ["-p", ROTATION, "-p", "diagnostics_period_s:=0.5", "-p", QUEUE]
