@@ -180,6 +180,7 @@ PARAMS: tuple[Param, ...] = (
         "bool",
         True,
         "offer owl/debug_image (tracks and heading mark; built only while subscribed)",
+        read_only=True,
     ),
     Param(
         "diagnostics_period_s",

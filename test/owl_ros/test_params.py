@@ -112,7 +112,13 @@ def test_descriptors_carry_ranges_and_read_only() -> None:
         else:
             assert not d.integer_range and not d.floating_point_range
     read_only = {p.name for p in P.PARAMS if p.read_only}
-    assert read_only == {"image_transport", "queue_size", "speed_source", "speed_topic"}
+    assert read_only == {
+        "image_transport",
+        "queue_size",
+        "speed_source",
+        "speed_topic",
+        "publish_debug_image",
+    }
 
 
 def test_parse_value_like_ros2_param_set() -> None:
@@ -168,3 +174,11 @@ def test_rviz_config_shows_cloud_by_intensity_field_and_heading(repo_root: Path)
 
 def test_config_yaml_is_generated_from_the_table(repo_root: Path) -> None:
     assert (repo_root / "config" / "owl.yaml").read_text() == P.config_yaml()
+
+
+def test_process_help() -> None:
+    from owl_ros import process
+
+    with pytest.raises(SystemExit) as info:
+        process.main(["--help"])
+    assert info.value.code == 0
