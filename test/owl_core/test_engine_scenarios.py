@@ -244,8 +244,11 @@ def test_moving_car_points_are_flagged() -> None:
     assert recall > 20 * false_rate
 
 
-def timing(seconds: float = 1.5, repeats: int = 3) -> dict[str, dict[str, float]]:
-    """Per-stage time per frame (ms) at 640x480 with 1000 features on the street scenario.
+def timing(
+    seconds: float = 1.5, repeats: int = 3, features: int = 1000
+) -> dict[str, dict[str, float]]:
+    """Per-stage time per frame (ms) at 640x480 on the street scenario (``features``
+    tracked).
 
     The frames are rendered once and processed ``repeats`` times; for each stage the median
     over frames (after the first 10) of each pass is taken and the best pass reported, so
@@ -262,7 +265,9 @@ def timing(seconds: float = 1.5, repeats: int = 3) -> dict[str, dict[str, float]
     for _ in range(repeats):
         engine = OwlEngine(
             sim.camera,
-            EngineOptions(camera_to_imu_rotation_xyzw=sim.camera_to_imu_xyzw, max_features=1000),
+            EngineOptions(
+                camera_to_imu_rotation_xyzw=sim.camera_to_imu_xyzw, max_features=features
+            ),
         )
         engine.add_gyro(sim.gyro_samples())
         per_stage: dict[str, list[float]] = {}
@@ -280,7 +285,8 @@ def timing(seconds: float = 1.5, repeats: int = 3) -> dict[str, dict[str, float]
 if __name__ == "__main__":  # figures for the report / benchmark: prints one line per run
     args = sys.argv[1:]
     if "--timing" in args:
-        print(timing(), flush=True)
+        n_features = int(args[args.index("--features") + 1]) if "--features" in args else 1000
+        print(timing(features=n_features), flush=True)
         sys.exit(0)
     size = (640, 480) if "--vga" in args else (320, 240)
     feats = 1000 if "--vga" in args else 400
