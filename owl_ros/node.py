@@ -275,10 +275,11 @@ class OwlNode(Node):
     def _step(self) -> None:
         other, images, dropped = self._inbox.drain()
         pipeline = self._pipeline
-        for kind, msg, arrival in other:
-            if kind == "imu":
-                pipeline.add_imu(msg, arrival)
-            elif kind == "camera_info":
+        imus = [(msg, arrival) for kind, msg, arrival in other if kind == "imu"]
+        if imus:  # one batch: the engine's gyro buffer takes them at once
+            pipeline.add_imus([m for m, _ in imus], imus[-1][1])
+        for kind, msg, _arrival in other:
+            if kind == "camera_info":
                 pipeline.add_camera_info(msg)
             elif kind == "speed":
                 pipeline.add_speed(msg)

@@ -38,6 +38,7 @@ from __future__ import annotations
 import collections
 import math
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -49,7 +50,7 @@ from msg_adapters.camera_info import camera_info_to_model
 from msg_adapters.diagnostics import Level, StatusRecord
 from msg_adapters.heading import heading_to_msg
 from msg_adapters.image import compressed_to_frame, image_to_frame
-from msg_adapters.imu import imu_to_gyro
+from msg_adapters.imu import imus_to_gyro
 from msg_adapters.pointcloud import frame_result_to_cloud
 from msg_adapters.stamps import header_to_ns
 from owl_core.camera import CameraModel
@@ -315,50 +316,81 @@ class Pipeline:
 
     def add_imu(self, msg: Any, arrival_ns: int) -> None:
         """A sensor_msgs/Imu (REP 145; only angular_velocity is used)."""
-        self._count("imu")
+        self.add_imus([msg], arrival_ns)
+
+    def add_imus(self, msgs: Sequence[Any], arrival_ns: int) -> None:
+        """sensor_msgs/Imu messages in arrival order, handed to the engine in one batch."""
+        if not msgs:
+            return
         self._imu_arrival_ns = arrival_ns
         try:
-            samples = imu_to_gyro(msg)
+            samples = imus_to_gyro(msgs)
         except ValueError as err:
+            if len(msgs) > 1:  # find the bad one(s); keep the others
+                for msg in msgs:
+                    self.add_imus([msg], arrival_ns)
+                return
+            self._count("imu")
             self._count("imu_invalid")
             self._last_imu_problem = str(err)
             return
-        stamp = int(samples.stamp_ns[0])
-        rate = samples.angular_velocity[0]
-        if not np.all(np.isfinite(rate)):
-            self._count("imu_non_finite")
-            self._last_imu_problem = f"imu.angular_velocity not finite: {rate.tolist()}"
-            return
-        newest = self._newest_imu_ns
-        if newest is not None and stamp <= newest:
-            jump_ns = round(self.options.engine.max_frame_gap_s * 1e9)
-            if stamp < newest - jump_ns:
+        self._count("imu", len(msgs))
+        stamps = samples.stamp_ns
+        rates = samples.angular_velocity
+        finite = np.all(np.isfinite(rates), axis=1)
+        keep: list[int] = []
+        for i in range(stamps.shape[0]):
+            stamp = int(stamps[i])
+            if not finite[i]:
+                self._count("imu_non_finite")
+                self._last_imu_problem = f"imu.angular_velocity not finite: {rates[i].tolist()}"
+                continue
+            newest = self._newest_imu_ns
+            if newest is not None and stamp <= newest:
+                jump_ns = round(self.options.engine.max_frame_gap_s * 1e9)
+                if stamp >= newest - jump_ns:
+                    key = "imu_duplicate" if stamp == newest else "imu_out_of_order"
+                    self._count(key)
+                    self._last_imu_problem = (
+                        f"imu stamp {stamp} ns not after {newest} ns ({key[4:]})"
+                    )
+                    continue
+                self._feed(stamps, rates, keep)
                 self._time_jump(
                     f"IMU stamp went back {(newest - stamp) * 1e-9:.3f} s ({stamp} ns after "
                     f"{newest} ns): engine reset",
                     stale_after_ns=stamp + jump_ns,
                 )
-            else:
-                key = "imu_duplicate" if stamp == newest else "imu_out_of_order"
-                self._count(key)
-                self._last_imu_problem = f"imu stamp {stamp} ns not after {newest} ns ({key[4:]})"
-                return
-        if newest is not None and stamp - newest > self.options.imu_max_gap_s * 1e9:
-            # never interpolate across a gap: frames spanning it are not covered
-            self._count("imu_gaps")
-            self._last_imu_problem = (
-                f"IMU gap of {(stamp - newest) * 1e-6:.1f} ms before {stamp} ns (> imu_max_gap_s)"
-            )
-            self._ring.clear()
-            if self._engine is not None:
-                self._engine.gyro.reset()
-        self._newest_imu_ns = stamp
-        self._ring.append((stamp, (float(rate[0]), float(rate[1]), float(rate[2]))))
-        horizon = stamp - round(IMU_RING_S * 1e9)
+            elif newest is not None and stamp - newest > self.options.imu_max_gap_s * 1e9:
+                # never interpolate across a gap: frames spanning it are not covered
+                self._feed(stamps, rates, keep)
+                self._count("imu_gaps")
+                self._last_imu_problem = (
+                    f"IMU gap of {(stamp - newest) * 1e-6:.1f} ms before {stamp} ns "
+                    "(> imu_max_gap_s)"
+                )
+                self._ring.clear()
+                if self._engine is not None:
+                    self._engine.gyro.reset()
+            self._newest_imu_ns = stamp
+            keep.append(i)
+        self._feed(stamps, rates, keep)
+
+    def _feed(
+        self, stamps: npt.NDArray[np.int64], rates: npt.NDArray[np.float64], keep: list[int]
+    ) -> None:
+        """Accepted samples ``keep`` (indices, cleared here) -> ring buffer and engine."""
+        if not keep:
+            return
+        idx = np.asarray(keep, dtype=np.int64)
+        keep.clear()
+        good_t, good_w = stamps[idx], rates[idx]
+        self._ring.extend(zip(good_t.tolist(), map(tuple, good_w.tolist()), strict=True))
+        horizon = int(good_t[-1]) - round(IMU_RING_S * 1e9)
         while self._ring and self._ring[0][0] < horizon:
             self._ring.popleft()
         if self._engine is not None:
-            self._engine.add_gyro(samples)
+            self._engine.add_gyro(GyroSamples(stamp_ns=good_t, angular_velocity=good_w))
 
     def add_speed(self, msg: Any) -> None:
         """A nav_msgs/Odometry or geometry_msgs/TwistStamped (speed = |linear velocity|)."""

@@ -514,3 +514,36 @@ def test_imu_publisher_disappears_and_comes_back(feed: Feed) -> None:
     assert len(outs) == len(stamps)
     assert outs[-1].result.num_points > 0  # recovered
     assert diag(pipe, "input")[1]["imu_gaps_total"] == "1"
+
+
+def test_imu_batches_equal_single_messages(feed: Feed) -> None:
+    """The node hands the IMU over in batches; the result must not depend on batching,
+    bad samples inside a batch included."""
+    imus = list(feed.imus)
+    nan = modified(imus[60])
+    nan.angular_velocity.y = math.inf
+    imus[60] = nan
+    imus.insert(90, imus[89])  # duplicate
+    single = Pipeline(options(feed))
+    outs_single = run(single, events(feed, imus=imus))
+    batched = Pipeline(options(feed))
+    outs_batched: list[Output] = []
+    pending: list[Any] = []
+    for now, kind, msg in events(feed, imus=imus):
+        if kind == "imu":
+            pending.append(msg)
+            continue
+        batched.add_imus(pending, now)
+        pending = []
+        if kind == "info":
+            batched.add_camera_info(msg)
+        else:
+            batched.add_image(msg, now)
+        outs_batched += batched.poll(now)
+    batched.add_imus(pending, now)
+    outs_batched += batched.poll(now, flush=True)
+    assert [bytes(o.cloud.data) for o in outs_batched] == [
+        bytes(o.cloud.data) for o in outs_single
+    ]
+    for key in ("imu", "imu_non_finite", "imu_duplicate"):
+        assert batched.totals[key] == single.totals[key] > 0
