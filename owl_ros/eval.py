@@ -374,9 +374,15 @@ def _pick(topics: dict[str, Any], names: Iterable[str], wanted: str | None) -> s
 
 
 def read_estimates(
-    path: str | Path, points_topic: str | None = None, heading_topic: str | None = None
+    path: str | Path,
+    points_topic: str | None = None,
+    heading_topic: str | None = None,
+    notes: list[str] | None = None,
 ) -> dict[int, Estimate]:
     """The result bag's frames by image stamp (ns): points, heading, latest bias estimate.
+
+    A truncated result bag (e.g. a recorder that was killed) is read up to the damage and
+    the damage is appended to ``notes``.
 
     Raises:
         EvalError: neither a points nor a heading topic, a cloud without the needed fields.
@@ -387,13 +393,17 @@ def read_estimates(
     from msg_adapters.pointcloud import cloud_to_array
     from msg_adapters.stamps import header_to_ns
 
-    with BagReader(path) as bag:
+    with BagReader(path, recover=True) as bag:
+        if bag.damage and notes is not None:
+            notes.append(f"result bag damaged, scored what was readable: {bag.damage}")
         topics = bag.topics
         pts_t = _pick(topics, POINTS_TOPICS, points_topic)
         head_t = _pick(topics, HEADING_TOPICS, heading_topic)
         if pts_t is None and head_t is None:
             want = points_topic or heading_topic or "/owl/points or /owl/heading"
             msg = f"result bag {path} has no {want} (has: {', '.join(sorted(topics)) or 'none'})"
+            if bag.damage:
+                msg += f"; it is damaged: {bag.damage}"
             raise EvalError(msg)
         read = [t for t in (pts_t, head_t) if t is not None]
         if DIAGNOSTICS_TOPIC in topics:
@@ -628,9 +638,9 @@ def evaluate(
     progress: bool = False,
 ) -> Evaluation:
     """Score a result bag against a truth bag (see the module docstring)."""
-    estimates = read_estimates(result_path, points_topic, heading_topic)
-    info = truth_info(truth_path)
     notes: list[str] = []
+    estimates = read_estimates(result_path, points_topic, heading_topic, notes)
+    info = truth_info(truth_path)
     truth_bias = None
     if "gyro_bias" in info:
         truth_bias = np.asarray(info["gyro_bias"], dtype=np.float64)

@@ -59,13 +59,13 @@ def truth_bag(tmp_path_factory):
     return path, sim, list(sim.frames())
 
 
-def wrong_result(frame, rng):
+def wrong_result(frame, rng, n_random=60):
     """A FrameResult wrong by known amounts: heading rotated 10 deg, r/|t| x 1.1, bias off."""
     v = frame.velocity
     axis = np.cross(v, [0.0, 1.0, 0.0])
     heading = so3_exp(axis / np.linalg.norm(axis) * math.radians(HEADING_OFFSET_DEG)) @ v
     h, w = frame.range_m.shape
-    px = np.c_[rng.integers(0, w, 60), rng.integers(0, h, 60)].astype(np.float64)
+    px = np.c_[rng.integers(0, w, n_random), rng.integers(0, h, n_random)].astype(np.float64)
     moving = np.argwhere(frame.mask)[:, ::-1].astype(np.float64)  # (u, v) on the car
     px = np.concatenate([px, moving[:: max(1, moving.shape[0] // 10)]])
     iu, iv = px[:, 0].astype(int), px[:, 1].astype(int)
@@ -178,3 +178,19 @@ def test_cli_errors_are_one_line(truth_bag, tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         ev.main(["--help"])
     assert exc.value.code == 0
+
+
+def test_truncated_result_bag_is_scored_up_to_the_damage(truth_bag, tmp_path):
+    path, _, frames = truth_bag
+    rng = np.random.default_rng(2)
+    result = tmp_path / "result"
+    # enough points for several MCAP chunks: a cut leaves the first ones readable
+    ev.write_result_bag(result, [wrong_result(f, rng, 8000)[0] for f in frames])
+    (mcap,) = result.glob("*.mcap")
+    data = mcap.read_bytes()
+    mcap.write_bytes(data[: len(data) * 2 // 3])  # a recorder killed mid-write
+    (result / "metadata.yaml").unlink()
+    out = ev.evaluate(result, path)
+    assert any("damaged" in n for n in out.notes)
+    assert 0 < out.summary["heading_frames"] < len(frames)
+    assert out.summary["heading_deg_median"] == pytest.approx(HEADING_OFFSET_DEG, abs=1e-9)
