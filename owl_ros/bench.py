@@ -354,13 +354,14 @@ def run_bench(
     estimation_speedup_gyro, owl_/baseline_/baseline_gyro_ heading_deg_median/p90 and
     range_rel_median/p90 pooled over the static scenarios without bias, the same with suffix
     ``_bias`` for the biased rows and ``_nobias_matched`` for the unbiased rows of the same
-    scenarios, owl_points_per_frame, owl_stage_ms_per_frame,
-    heading_ratio and range_ratio (OWL / cv-5pt medians), peak_rss_mb, machine, cases
+    scenarios, owl_points_per_frame, frames_held_mb (rendered frames + truth in memory),
+    owl_stage_ms_per_frame, heading_ratio and range_ratio (OWL / cv-5pt medians), peak_rss_mb, machine, cases
     (per-case rows: stage times, and per method every owl_eval summary key + fps).
     """
     cv2.setNumThreads(1)
     runs: list[CaseRun] = []
     images: dict[str, Frames] = {}
+    frames_mb = 0.0
     t_start = time.monotonic()
     for i, case in enumerate(profile.cases, start=1):
         sim = _sim(case, profile)
@@ -368,6 +369,10 @@ def run_bench(
         if case.scenario not in images:
             images = {case.scenario: load_frames(sim, cache_dir, log)}
         frames = images[case.scenario]
+        held = frames.images.nbytes + frames.range_m.nbytes + frames.velocity.nbytes
+        frames_mb = max(
+            frames_mb, (held + (frames.mask.nbytes if frames.mask is not None else 0)) / 2**20
+        )
         log(
             f"[{i}/{len(profile.cases)}] {case.label}: OWL + baselines on {frames.stamps_ns.size} "
             f"frames ({time.monotonic() - t_start:.0f} s elapsed)"
@@ -415,6 +420,7 @@ def run_bench(
     )
     out["range_ratio"] = _ratio(out["owl_range_rel_median"], out["baseline_range_rel_median"])
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    out["frames_held_mb"] = frames_mb
     out["machine"] = {
         "cpu": _cpu_name(),
         "cores": os.cpu_count(),
@@ -525,7 +531,9 @@ def report_lines(doc: dict[str, Any]) -> list[str]:
         f"  ratios OWL / cv-5pt: heading {_f(doc['heading_ratio'])}, r/|t| "
         f"{_f(doc['range_ratio'])}",
         "",
-        f"peak memory (max RSS, rendering included): {doc['peak_rss_mb']:.0f} MB; "
+        f"peak memory (max RSS, rendering included): {doc['peak_rss_mb']:.0f} MB, of which "
+        f"{doc.get('frames_held_mb', 0):.0f} MB are one scenario's frames and truth held in "
+        "memory; "
         f"wall time {doc['wall_s']:.0f} s",
     ]
     return lines
