@@ -355,8 +355,9 @@ def run_bench(
     range_rel_median/p90 pooled over the static scenarios without bias, the same with suffix
     ``_bias`` for the biased rows and ``_nobias_matched`` for the unbiased rows of the same
     scenarios, owl_points_per_frame, frames_held_mb (rendered frames + truth in memory),
-    owl_stage_ms_per_frame, heading_ratio and range_ratio (OWL / cv-5pt medians), peak_rss_mb, machine, cases
-    (per-case rows: stage times, and per method every owl_eval summary key + fps).
+    owl_stage_ms_per_frame, heading_ratio and range_ratio (OWL / cv-5pt medians),
+    peak_rss_mb, machine, cases (per-case rows: stage times, and per method every owl_eval
+    summary key + fps).
     """
     cv2.setNumThreads(1)
     runs: list[CaseRun] = []
