@@ -351,7 +351,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     own = args[: args.index("--ros-args")] if "--ros-args" in args else args
     if "-h" in own or "--help" in own:
-        print(_help())
+        try:
+            print(_help())
+        except BrokenPipeError:  # e.g. owl_node --help | head
+            pass
         return 0
     stop = threading.Event()
     rclpy.init(args=[PROG, *args], signal_handler_options=SignalHandlerOptions.NO)

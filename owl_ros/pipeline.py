@@ -688,6 +688,7 @@ class Pipeline:
                 "latency_ms_p50": 1e3 * _percentile(win.latency_s, 50),
                 "latency_ms_p95": 1e3 * _percentile(win.latency_s, 95),
                 "stamp_to_publish_ms_p50": 1e3 * _percentile(win.stamp_latency_s, 50),
+                "stamp_to_publish_ms_p95": 1e3 * _percentile(win.stamp_latency_s, 95),
                 "dropped_queue_full_total": t["dropped_queue_full"],
                 "dropped_time_jump_total": t["dropped_time_jump"],
                 "skipped_no_camera_info_total": t["skipped_no_camera_info"],
