@@ -45,7 +45,15 @@ Predictor = Callable[[FloatArray], npt.ArrayLike]
 __all__ = ["LOST_REASONS", "FeatureTracker", "TrackerOptions", "Tracks"]
 
 #: Keys of :attr:`Tracks.lost_by_reason`.
-LOST_REASONS = ("lk_failed", "fb_check", "patch_error", "left_image", "merged", "reset")
+LOST_REASONS = (
+    "lk_failed",
+    "fb_check",
+    "patch_error",
+    "left_image",
+    "merged",
+    "crowded",
+    "reset",
+)
 
 
 @dataclass(frozen=True)
@@ -79,6 +87,10 @@ class TrackerOptions:
             ``min_distance_px``).
         redetect_below: detect new corners when fewer than
             ``redetect_below * max_features`` features survive, in (0, 1].
+        max_cell_share: a grid cell holding more than this many times its share
+            (``max_features / (grid_cols * grid_rows)``) retires its youngest extra
+            features (reason ``crowded``), so features that converge (receding
+            camera) make room for new ones where the image emptied; 0 disables.
         history_len: number of positions kept per track (current one included, >= 2).
     """
 
@@ -98,6 +110,7 @@ class TrackerOptions:
     max_patch_error: float = 20.0
     merge_distance_px: float = 2.0
     redetect_below: float = 0.95
+    max_cell_share: float = 3.0
     history_len: int = 8
 
     def __post_init__(self) -> None:
@@ -128,6 +141,7 @@ class TrackerOptions:
             "lk_epsilon_px": (self.lk_epsilon_px, 0.0, math.inf, False),
             "lk_min_eigenvalue": (self.lk_min_eigenvalue, 0.0, math.inf, True),
             "fb_threshold_px": (self.fb_threshold_px, 0.0, math.inf, False),
+            "max_cell_share": (self.max_cell_share, 0.0, math.inf, True),
             "max_patch_error": (self.max_patch_error, 0.0, 255.0, False),
             "merge_distance_px": (self.merge_distance_px, 0.0, math.inf, True),
             "redetect_below": (self.redetect_below, 0.0, 1.0, False),
@@ -165,7 +179,8 @@ class Tracks:
         lost_ids: (num_lost,) uint32 ids of the features lost in this frame.
         lost_by_reason: counts of lost features per reason (``LOST_REASONS``):
             LK failure, forward-backward check, patch difference, leaving the
-            image, merged into an older feature, reset (image size change).
+            image, merged into an older feature, retired from a crowded grid cell,
+            reset (image size change).
         timings: seconds spent in ``"lk"`` (both directions) and ``"detect"``.
     """
 
@@ -274,8 +289,16 @@ class FeatureTracker:
                 )
                 # ids grow with creation time: the larger index is the younger track.
                 reason[alive[pairs.max(axis=1)]] = 5
+            if opts.max_cell_share > 0:
+                # Features converge when the camera recedes (or turns away from them):
+                # a cell holding more than max_cell_share x its share retires its
+                # youngest extras, so the total drops and the emptied cells get new ones.
+                alive = np.flatnonzero(reason == 0)  # ascending ids: oldest first
+                cells = self._cells(new_pos[alive], img.shape[1], img.shape[0])
+                cap = math.ceil(opts.max_cell_share * self._share())
+                reason[alive[_rank_within(cells, self._ncells()) >= cap]] = 6
             keep = reason == 0
-            for code, name in enumerate(LOST_REASONS[:5], start=1):
+            for code, name in enumerate(LOST_REASONS[:6], start=1):
                 lost_by_reason[name] = int(np.count_nonzero(reason == code))
             lost_ids = np.concatenate([lost_ids, self._ids[~keep]])
             self._history[:, 0] = new_pos
@@ -432,17 +455,11 @@ class FeatureTracker:
             return np.zeros((0, 2))
         pts = corners.reshape(-1, 2).astype(np.float64)  # strongest first
         # Grid bucketing: each cell may add up to its share minus what it holds.
-        ncells = opts.grid_cols * opts.grid_rows
-        share = math.ceil(opts.max_features / ncells)
+        ncells = self._ncells()
         cell_new = self._cells(pts, width, height)
         cell_old = self._cells(existing, width, height)
-        room = share - np.bincount(cell_old, minlength=ncells)
-        order = np.argsort(cell_new, kind="stable")  # by cell, strongest first within
-        counts = np.bincount(cell_new, minlength=ncells)
-        starts = np.cumsum(counts) - counts
-        rank = np.empty(pts.shape[0], dtype=np.int64)
-        rank[order] = np.arange(pts.shape[0]) - np.repeat(starts, counts)
-        first = rank < room[cell_new]
+        room = self._share() - np.bincount(cell_old, minlength=ncells)
+        first = _rank_within(cell_new, ncells) < room[cell_new]  # strongest first within
         chosen = np.flatnonzero(first)[:needed]
         if chosen.shape[0] < needed:  # cells without texture: fill with the strongest rest
             rest = np.flatnonzero(~first)[: needed - chosen.shape[0]]
@@ -450,12 +467,37 @@ class FeatureTracker:
         result: FloatArray = pts[chosen]
         return result
 
+    def _ncells(self) -> int:
+        return self.options.grid_cols * self.options.grid_rows
+
+    def _share(self) -> int:
+        """Features per grid cell when the image is evenly covered."""
+        return math.ceil(self.options.max_features / self._ncells())
+
     def _cells(self, pts: FloatArray, width: int, height: int) -> npt.NDArray[np.int64]:
         opts = self.options
         col = np.clip((pts[:, 0] + 0.5) * opts.grid_cols // width, 0, opts.grid_cols - 1)
         row = np.clip((pts[:, 1] + 0.5) * opts.grid_rows // height, 0, opts.grid_rows - 1)
         result: npt.NDArray[np.int64] = (row * opts.grid_cols + col).astype(np.int64)
         return result
+
+
+def _rank_within(groups: npt.NDArray[np.int64], ngroups: int) -> npt.NDArray[np.int64]:
+    """Rank (0, 1, ...) of each element within its group, in input order.
+
+    Args:
+        groups: (N,) int64 group index of each element, in [0, ngroups).
+        ngroups: number of groups.
+
+    Returns:
+        (N,) int64: element i is the rank[i]-th element of group groups[i].
+    """
+    order = np.argsort(groups, kind="stable")
+    counts = np.bincount(groups, minlength=ngroups)
+    starts = np.cumsum(counts) - counts
+    rank = np.empty(groups.shape[0], dtype=np.int64)
+    rank[order] = np.arange(groups.shape[0]) - np.repeat(starts, counts)
+    return rank
 
 
 _T = TypeVar("_T", bound=np.ndarray)

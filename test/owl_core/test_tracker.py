@@ -302,3 +302,50 @@ def test_converging_tracks_are_merged_into_the_older() -> None:
     assert not np.any(younger_alive & older_alive)
     assert np.count_nonzero(older_alive) > np.count_nonzero(younger_alive)
     assert set(second.timings) == {"lk", "detect"} and second.timings["lk"] > 0.0
+
+
+def _outer_ring_count(tracks: Tracks) -> int:
+    """Features in the outer ring of grid cells (8 x 6 grid of OPTS)."""
+    col = (tracks.pixels[:, 0] + 0.5) * OPTS.grid_cols // W
+    row = (tracks.pixels[:, 1] + 0.5) * OPTS.grid_rows // H
+    ring = (col == 0) | (col == OPTS.grid_cols - 1) | (row == 0) | (row == OPTS.grid_rows - 1)
+    return int(np.count_nonzero(ring))
+
+
+@pytest.mark.parametrize("max_cell_share", [0.0, 3.0])
+def test_crowded_cells_retire_their_youngest_and_make_room(max_cell_share: float) -> None:
+    """Features gathered in a few cells (as a receding camera gathers them at the centre).
+
+    Frame 0 has texture only in the central 4 x 2 cells, so all features are detected
+    there; frame 1 shows the whole texture. No feature is lost, so without retirement
+    nothing is re-detected and the outer cells stay empty; with it, the crowded cells
+    retire their youngest extras and detection fills the rest of the image.
+    """
+    opts = TrackerOptions(
+        max_features=100,
+        grid_cols=8,
+        grid_rows=6,
+        redetect_below=0.8,
+        max_cell_share=max_cell_share,
+    )
+    centre = np.full_like(IMAGE0, 128)
+    centre[H // 3 : 2 * H // 3, W // 4 : 3 * W // 4] = IMAGE0[
+        H // 3 : 2 * H // 3, W // 4 : 3 * W // 4
+    ]
+    tracker = FeatureTracker(opts)
+    first = tracker.track(centre, 0)
+    assert first.num_tracks == 100 and _outer_ring_count(first) == 0
+    second = tracker.track(IMAGE0, 33_000_000)
+    if max_cell_share == 0.0:
+        assert second.num_detected == 0 and _outer_ring_count(second) == 0
+        return
+    share = np.ceil(opts.max_features / (opts.grid_cols * opts.grid_rows))
+    cells = ((second.pixels[:, 1] + 0.5) * 6 // H) * 8 + (second.pixels[:, 0] + 0.5) * 8 // W
+    kept = second.ids[np.isin(second.ids, first.ids)]
+    assert np.bincount(cells.astype(int)).max() <= np.ceil(max_cell_share * share)
+    assert second.lost_by_reason["crowded"] > 0
+    assert _outer_ring_count(second) > 10  # the emptied cells got new features
+    # the oldest (lowest ids) of each crowded cell are the ones kept
+    retired = np.setdiff1d(first.ids, second.ids)
+    assert kept.shape[0] > 0 and retired.shape[0] > 0
+    assert np.median(kept) < np.median(retired)
