@@ -85,6 +85,11 @@ class BaselineOptions:
         min_parallax_deg: triangulated points whose two rays meet at less than this angle
             get no range (it would be noise), degrees.
         seed: seed of OpenCV's and numpy's RANSAC random generators.
+
+    The defaults are the best of a sweep on the ``street`` and ``cube`` scenarios at 640x480
+    (robust estimator x threshold 0.3/0.5/1 px x gap 2/4/7 frames): USAC_ACCURATE at 0.5 px
+    over 4 frames is within a few hundredths of a degree of the best heading on both, while
+    plain RANSAC is 3 to 10 times worse (0.4-1.9 deg median) and LMEDS 2 to 4 times.
     """
 
     method: str = "essential"
