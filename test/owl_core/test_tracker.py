@@ -137,6 +137,25 @@ def test_fast_rotation_needs_prediction() -> None:
     assert results[False] < 0.2 * results[True]
 
 
+def test_backward_pass_needs_no_pyramid_reach() -> None:
+    # The backward pass starts where the forward pass started: a 16 px shift (beyond
+    # the ~7 px reach of one level) passes the check with 0 backward levels, and the
+    # kept tracks equal those of a full-pyramid backward pass.
+    d = np.array([12.3, -9.6])
+    kept = {}
+    for levels in (0, 3):
+        tracker = FeatureTracker(TrackerOptions(max_features=300, lk_backward_levels=levels))
+        first = tracker.track(IMAGE0, 0)
+        second = tracker.track(_shifted(d), 1)
+        old = _tracked(second)
+        # about 12 % of the image (plus the border) shifts out of view
+        assert np.count_nonzero(old) > 0.8 * first.num_tracks
+        err = np.linalg.norm(second.pixels[old] - second.history[old, 1] - d, axis=1)
+        assert np.max(err) < 0.1
+        kept[levels] = second.ids[old]
+    np.testing.assert_array_equal(kept[0], kept[3])
+
+
 def test_forward_backward_rejects_changed_region() -> None:
     d = np.array([1.3, 0.4])
     u, v = _grid()
@@ -268,6 +287,8 @@ def test_bad_inputs() -> None:
         TrackerOptions(lk_window_px=20)
     with pytest.raises(InvalidInputError, match=r"fb_threshold_px.*-1"):
         TrackerOptions(fb_threshold_px=-1.0)
+    with pytest.raises(InvalidInputError, match=r"lk_backward_levels.*-1"):
+        TrackerOptions(lk_backward_levels=-1)
 
 
 def test_non_finite_prediction_falls_back_to_previous_position() -> None:
