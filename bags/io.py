@@ -38,6 +38,7 @@ from __future__ import annotations
 import functools
 import os
 import shutil
+import struct
 import tempfile
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -225,7 +226,7 @@ class BagReader:
         reader = Reader(target)
         try:
             reader.open()
-        except (ReaderError, OSError, KeyError, ValueError, TypeError) as err:
+        except (ReaderError, OSError, KeyError, ValueError, TypeError, OverflowError) as err:
             msg = f"truncated or corrupt bag {self.path}: {_one_line(err)}"
             raise CorruptBagError(msg) from None
         self._reader = reader
@@ -266,7 +267,8 @@ class BagReader:
                         elif isinstance(record, Message) and record.channel_id in channels:
                             channel = channels[record.channel_id]
                             yield schemas.get(channel.schema_id), channel, record
-            except (McapError, OSError, ValueError, EOFError) as err:
+            except (McapError, OSError, ValueError, EOFError, OverflowError, struct.error) as err:
+                # garbage record lengths: beyond sys.maxsize, or a short read at the end
                 self.damage = f"{file}: {_one_line(err)}"
                 return
 
@@ -377,7 +379,7 @@ class BagReader:
         try:
             for conn, stamp, data in self._reader.messages(connections=conns):
                 yield RawMessage(conn.topic, conn.msgtype, stamp, bytes(data))
-        except (ReaderError, OSError, ValueError, KeyError) as err:
+        except (ReaderError, OSError, ValueError, KeyError, OverflowError) as err:
             msg = f"truncated or corrupt bag {self.path}: {_one_line(err)}"
             raise CorruptBagError(msg) from None
 
