@@ -596,11 +596,10 @@ class OwlEngine:
         gyro_prior = opts.no_gyro_rotation_sigma**2 * np.eye(3)
         have_gyro = len(self._gyro) > 0
         with_gyro = True
-        for k in columns[1:]:
-            if self._gyro.covers(int(stamps[k]), stamp):
-                rotations[k] = self._gyro.relative_rotation(int(stamps[k]), stamp, bias)
-            else:
-                usable_col[k] = False
+        covered = [k for k in columns[1:] if self._gyro.covers(int(stamps[k]), stamp)]
+        usable_col[np.setdiff1d(columns[1:], covered)] = False
+        if covered:  # one integration back over the whole fit window
+            rotations[covered] = self._gyro.relative_rotations(stamps[covered], stamp, bias)
         if columns.size > 1 and not usable_col[columns[1]]:
             # not even the last interval is covered
             if opts.require_gyro:

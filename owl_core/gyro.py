@@ -255,11 +255,58 @@ class GyroBuffer:
         if t1_ns < t0_ns:
             return self.relative_rotation(t1_ns, t0_ns, bias_imu).T.copy()
         knots_s, rates = self._knots(int(t0_ns), int(t1_ns), bias_imu)
-        rotvec = _magnus_steps(np.diff(knots_s), rates[:-1], rates[1:])
+        rotvec, _ = _magnus_steps(np.diff(knots_s), rates[:-1], rates[1:])
         steps = so3_exp(rotvec)
         result = np.eye(3)
         for step in steps:  # a few samples per frame interval, later steps on the left
             result = step @ result
+        return result
+
+    def relative_rotations(
+        self, t0s_ns: npt.ArrayLike, t1_ns: int, bias_imu: npt.ArrayLike = (0.0, 0.0, 0.0)
+    ) -> FloatArray:
+        """``R_{1<-0}`` for several start stamps and one end stamp, in one integration.
+
+        Equals ``[relative_rotation(t0, t1_ns, bias_imu) for t0 in t0s_ns]`` (to the
+        integration tolerance, 1e-12 rad) at about the cost of the longest interval:
+        the pieces are integrated once and the products accumulated from ``t1_ns`` back.
+
+        Args:
+            t0s_ns: (K,) int64 start camera stamps, nanoseconds, each ``<= t1_ns``.
+            t1_ns: end camera stamp, nanoseconds.
+            bias_imu: (3,) gyro bias subtracted from the measured rates, IMU frame, rad/s.
+
+        Returns:
+            (K, 3, 3) float64 rotation matrices.
+
+        Raises:
+            TimeError: the samples do not cover ``[min(t0s_ns), t1_ns]``.
+            InvalidInputError: a start after ``t1_ns``, or a malformed bias.
+        """
+        starts = np.asarray(t0s_ns, dtype=np.int64).reshape(-1)
+        end = int(t1_ns)
+        if starts.size == 0:
+            return np.zeros((0, 3, 3))
+        if np.any(starts > end):
+            raise InvalidInputError(
+                f"start stamps must not be after t1_ns = {end} ns, got {starts.tolist()}"
+            )
+        first = int(starts.min())
+        knots_s, rates = self._knots(first, end, bias_imu)
+        # Split the pieces at the other starts (the piecewise-linear rate is unchanged).
+        starts_s = (starts - first).astype(np.float64) * 1e-9
+        times = np.union1d(knots_s, starts_s)
+        if times.shape[0] != knots_s.shape[0]:
+            rates = np.stack([np.interp(times, knots_s, rates[:, i]) for i in range(3)], axis=-1)
+        rotvec, substeps = _magnus_steps(np.diff(times), rates[:-1], rates[1:])
+        steps = so3_exp(rotvec)
+        # suffix[i] = steps[-1] @ ... @ steps[i]: the rotation from sub-step i's start to t1
+        suffix = np.empty((steps.shape[0] + 1, 3, 3))
+        suffix[-1] = np.eye(3)
+        for i in range(steps.shape[0] - 1, -1, -1):
+            suffix[i] = suffix[i + 1] @ steps[i]
+        first_substep = np.concatenate([np.cumsum(substeps) - substeps, [steps.shape[0]]])
+        result: FloatArray = suffix[first_substep[np.searchsorted(times, starts_s)]]
         return result
 
     def mean_rate_camera(
@@ -324,7 +371,9 @@ class GyroBuffer:
         return rel_knots, rates_cam
 
 
-def _magnus_steps(h: FloatArray, wa: FloatArray, wb: FloatArray) -> FloatArray:
+def _magnus_steps(
+    h: FloatArray, wa: FloatArray, wb: FloatArray
+) -> tuple[FloatArray, npt.NDArray[np.int64]]:
     """Rotation vectors of the fourth-order Magnus steps over linear rate pieces.
 
     Each piece (length ``h`` s, rate ``wa`` -> ``wb`` rad/s, camera frame) is
@@ -337,7 +386,8 @@ def _magnus_steps(h: FloatArray, wa: FloatArray, wb: FloatArray) -> FloatArray:
         wb: (K, 3) rates at the piece ends, rad/s.
 
     Returns:
-        (S, 3) rotation vectors of the sub-steps in time order, rad.
+        (S, 3) rotation vectors of the sub-steps in time order, rad, and (K,) int64
+        the number of sub-steps of each piece.
     """
     dw = wb - wa
     size = np.linalg.norm(wa, axis=1) + np.linalg.norm(wb, axis=1)
@@ -352,4 +402,4 @@ def _magnus_steps(h: FloatArray, wa: FloatArray, wb: FloatArray) -> FloatArray:
     result: FloatArray = -0.5 * hs[:, None] * (w1 + w2) + (_SQRT3 / 12.0) * (hs * hs)[
         :, None
     ] * np.cross(w2, w1)
-    return result
+    return result, m

@@ -219,3 +219,36 @@ def test_bad_samples() -> None:
     buf.add(_samples(np.array([0, 10]), np.zeros((2, 3))))
     with pytest.raises(InvalidInputError, match="bias_imu"):
         buf.relative_rotation(0, 10, bias_imu=(0.0, 0.0))
+
+
+def test_relative_rotations_match_one_interval_each() -> None:
+    # The batched form (the engine's fit window: several past frames to the current one)
+    # splits the pieces at every start; the result must equal the independent integrations
+    # and the ODE reference.
+    rng = np.random.default_rng(11)
+    stamps = T_START + np.cumsum(rng.integers(2 * MS, 4 * MS, size=80))  # jittered ~330 Hz
+    rates_imu = rng.normal(scale=1.5, size=(80, 3))
+    buf = GyroBuffer(Q_FORWARD, imu_time_offset_ns=3 * MS, capacity_s=5.0)
+    buf.add(_samples(stamps, rates_imu))
+    bias = np.array([0.01, -0.02, 0.03])
+    t1 = int(stamps[70]) - 3 * MS - 1234
+    starts = np.array([t1 - 33_333_333 * k - 17 * k for k in (1, 2, 3, 4)] + [t1], np.int64)
+    batch = buf.relative_rotations(starts, t1, bias)
+    assert batch.shape == (5, 3, 3)
+    for t0, rot in zip(starts, batch, strict=True):
+        one = buf.relative_rotation(int(t0), t1, bias)
+        assert _angle(rot, one) < 1e-12
+    np.testing.assert_array_equal(batch[-1], np.eye(3))
+    rel = (stamps - 3 * MS - T_START) * 1e-9
+    rates_cam = (rates_imu - bias) @ R_CAM_TO_IMU
+
+    def rate(t: float) -> np.ndarray:
+        return np.array([np.interp(t, rel, rates_cam[:, i]) for i in range(3)])
+
+    ref = _ode_rotation(rate, (starts[3] - T_START) * 1e-9, (t1 - T_START) * 1e-9)
+    assert _angle(batch[3], ref) < 1e-9
+    assert buf.relative_rotations(np.zeros(0, np.int64), t1).shape == (0, 3, 3)
+    with pytest.raises(InvalidInputError, match=r"after t1_ns"):
+        buf.relative_rotations([t1 + 1], t1)
+    with pytest.raises(TimeError, match="do not cover"):
+        buf.relative_rotations([int(stamps[0]) - 3 * MS - 1, t1], t1)
