@@ -5,7 +5,8 @@ Per frame (:meth:`OwlEngine.process`):
 1. **track**: :class:`~owl_core.tracker.FeatureTracker` with LK initial positions predicted
    from the gyro rotation since the previous frame (fast rotations keep their tracks).
 2. **integrate**: each track's last ``fit_frames`` positions become bearings
-   (:class:`~owl_core.camera.CameraModel`, distortion included), rotated into the current
+   (:class:`~owl_core.camera.CameraModel`, distortion included; each position is
+   undistorted once and reused while it stays in the window), rotated into the current
    camera frame with the gyro rotations (current bias removed); a weighted polynomial fit of
    bearing against time gives the derotated bearing rate ``f`` at the current stamp and its
    noise, so neither ``f`` nor the neighbours' relative motion rests on two frames.
@@ -368,6 +369,11 @@ class OwlEngine:
         self._speed_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
         self._speed_rate = 0.0
         self._last_tracks: Tracks | None = None
+        # (stamp_ns, ids (N,), pixel history (N, W, 2), its unrotated bearings (N, W, 3))
+        # of the previous frame: undistortion (Newton iterations for real lenses) is then
+        # run on each new position only, not on the whole history every frame
+        self._bearing_cache: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None
+        self._bearing_cache = None
         self.frames = 0
 
     # ------------------------------------------------------------------ inputs
@@ -417,6 +423,7 @@ class OwlEngine:
         """Forget tracks, gyro samples, heading and the bias estimate."""
         self._tracker.reset()
         self._last_tracks = None
+        self._bearing_cache = None
         self._gyro.reset()
         self._bias.reset()
         self._last_stamp = None
@@ -429,11 +436,49 @@ class OwlEngine:
     def _soft_reset(self) -> None:
         """Forget tracks and heading (keeps gyro samples and the bias estimate)."""
         self._tracker.reset()
+        self._bearing_cache = None
         self._last_stamp = None
         self._last_heading = None
         self._heading_history = []
         self._speed_state = None
         self._speed_rate = 0.0
+
+    def _history_bearings(
+        self,
+        stamp: int,
+        ids: npt.NDArray[np.uint32],
+        hist: FloatArray,
+        stamps: npt.NDArray[np.int64],
+    ) -> FloatArray:
+        """Unit bearings (N, W, 3) of the track positions ``hist`` (N, W, 2), pixels (NaN
+        where a track did not exist), in each frame's own camera orientation.
+
+        Positions the previous frame already converted (same track id, same pixels one
+        column later) are taken from the cache; the rest (the new column, new tracks) are
+        converted with :meth:`CameraModel.pixel_to_bearing`. ``stamps`` (W,) int64 are the
+        history's frame stamps, ns; ``stamp`` the current one.
+        """
+        n, w = hist.shape[:2]
+        need = np.ones((n, w), dtype=bool)
+        out = np.empty((n, w, 3))
+        cache = self._bearing_cache
+        if cache is not None and w > 1 and stamps.shape[0] > 1 and cache[0] == int(stamps[1]):
+            _, c_ids, c_pix, c_bear = cache
+            cols = min(w - 1, c_pix.shape[1])
+            if c_ids.shape[0] > 0 and cols > 0:
+                order = np.argsort(c_ids, kind="stable")
+                pos = np.minimum(np.searchsorted(c_ids[order], ids), c_ids.shape[0] - 1)
+                rows = order[pos]
+                old = hist[:, 1 : 1 + cols]
+                was = c_pix[rows, :cols]
+                same = (c_ids[rows] == ids) & np.all(
+                    (old == was) | (np.isnan(old) & np.isnan(was)), axis=(1, 2)
+                )
+                out[same, 1 : 1 + cols] = c_bear[rows[same], :cols]
+                need[same, 1 : 1 + cols] = False
+        out[need] = self.camera.pixel_to_bearing(hist[need])
+        self._bearing_cache = (stamp, ids, hist, out)
+        return out
 
     def _update_speed_rate(
         self,
@@ -565,8 +610,18 @@ class OwlEngine:
             rot = self._gyro.relative_rotation(prev, stamp, bias)
             cam = self.camera
 
+            cache = self._bearing_cache
+
             def predict(px: FloatArray) -> FloatArray:
-                return cam.bearing_to_pixel(cam.pixel_to_bearing(px) @ rot.T)
+                if (
+                    cache is not None
+                    and cache[0] == prev
+                    and np.array_equal(cache[2][:, 0], px, equal_nan=True)
+                ):
+                    e_prev = cache[3][:, 0]  # the previous frame converted these pixels
+                else:
+                    e_prev = cam.pixel_to_bearing(px)
+                return cam.bearing_to_pixel(e_prev @ rot.T)
 
         t0 = time.perf_counter()
         tracks = self._tracker.track(img, stamp, predict)
@@ -629,7 +684,7 @@ class OwlEngine:
         hist = tracks.history[:, : opts.fit_frames]
         n_tracks = hist.shape[0]
         w = hist.shape[1]
-        bearings_h = self.camera.pixel_to_bearing(hist.reshape(-1, 2)).reshape(n_tracks, w, 3)
+        bearings_h = self._history_bearings(stamp, tracks.ids, hist, stamps)
         bearings_h = np.einsum("kij,nkj->nki", rotations[:w], bearings_h)
         mask = np.all(np.isfinite(bearings_h), axis=2) & usable_col[None, :w]
         tau = np.where(stamps[:w] >= 0, (stamps[:w] - stamp) * 1e-9, 0.0)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from bags import scenarios
+from owl_core.camera import CameraModel
 from owl_core.engine import EngineOptions, OwlEngine, fit_tracks
 from owl_core.errors import InvalidInputError
 from owl_core.types import GyroSamples, ImageFrame, PointFlag
@@ -241,3 +242,29 @@ def test_gyro_starting_late_shortens_fits_and_says_so(
     assert any("does not reach back" in r for r in results[4].reasons)
     assert all(r.num_points == 0 for r in results[:7])  # 5-frame fits need 4 covered intervals
     assert results[7].num_points > 0
+
+
+def test_history_bearings_reused_equal_fresh_undistortion(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
+) -> None:
+    # Each position is undistorted once and reused while it stays in the fit window; an
+    # engine whose cache is cleared before every frame converts the whole history anew.
+    sim, frames = street
+    cam = sim.camera
+    lens = CameraModel(
+        cam.width, cam.height, cam.K, np.array([-0.05, 0.01, 1e-4, -1e-4, 0.0]), "plumb_bob"
+    )
+    opts = EngineOptions(camera_to_imu_rotation_xyzw=sim.camera_to_imu_xyzw, max_features=400)
+    cached, fresh = OwlEngine(lens, opts), OwlEngine(lens, opts)
+    for engine in (cached, fresh):
+        engine.add_gyro(sim.gyro_samples())
+    points = 0
+    for frame in frames:
+        fresh._bearing_cache = None
+        a = cached.process(ImageFrame(frame.stamp_ns, frame.image))
+        b = fresh.process(ImageFrame(frame.stamp_ns, frame.image))
+        np.testing.assert_array_equal(a.ids, b.ids)
+        np.testing.assert_allclose(a.points, b.points, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(a.bearings, b.bearings, rtol=0, atol=1e-15)
+        points += a.num_points
+    assert points > 1000
