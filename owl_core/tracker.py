@@ -456,7 +456,7 @@ class FeatureTracker:
             occupied[ij[:, 1], ij[:, 0]] = 255
             r = math.ceil(opts.min_distance_px)
             disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-            mask[cv2.dilate(occupied, disk) > 0] = 0
+            cv2.subtract(mask, cv2.dilate(occupied, disk), dst=mask)  # 255 - 255 = 0
         corners = cv2.goodFeaturesToTrack(
             img,
             maxCorners=3 * needed + 10 * opts.grid_cols * opts.grid_rows,
