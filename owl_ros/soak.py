@@ -77,6 +77,8 @@ class SoakOptions:
         minutes: soak duration (publishing), minutes.
         width, height: rendered image size, px.
         rate_hz: camera frame rate of the rendered bag, Hz.
+        speed: play the bag this many times faster (restamp: stamps compressed and gyro
+            rates scaled, a consistent faster camera; replay: owl_replay --rate).
         clip_s: rendered bag length (one loop), s.
         scenario: owl_make_bag scenario.
         loop_mode: "restamp" (time moves forward) or "replay" (owl_replay --loop).
@@ -92,6 +94,7 @@ class SoakOptions:
     width: int = 320
     height: int = 240
     rate_hz: float = 30.0
+    speed: float = 1.0
     clip_s: float = 4.0
     scenario: str = "street"
     loop_mode: str = "restamp"
@@ -135,6 +138,8 @@ class Window:
     dropped_total: int
     time_jumps_total: int
     latency_ms_p95: float
+    processing_ms_max: float = math.nan
+    images_total: int = 0
 
 
 @dataclass
@@ -178,6 +183,10 @@ def _segment(run: _Run, t0: float, t1: float) -> dict[str, float]:
         "t1_s": t1,
         "rss_mib": _interp(st, [s.rss_mib for s in run.samples], t1),
         "processing_ms": float(np.median(proc)) if proc else math.nan,
+        "processing_ms_max": max(
+            (w.processing_ms_max for w in wins if math.isfinite(w.processing_ms_max)),
+            default=math.nan,
+        ),
         "cpu_ms_per_frame": 1e3 * (cpu(t1) - cpu(t0)) / n if n > 0 else math.nan,
         "frames_per_s": n / (t1 - t0) if t1 > t0 else math.nan,
         "dropped": round(dropped(t1) - dropped(t0)),
@@ -237,6 +246,7 @@ def make_report(opts: SoakOptions, run: _Run, elapsed_s: float) -> dict[str, Any
         "clouds_received": run.clouds,
         "processed": lastw.processed_total,
         "with_points": lastw.with_points_total,
+        "images_received": lastw.images_total,
         "dropped_queue_full": lastw.dropped_total,
         "time_jumps": lastw.time_jumps_total,
         "kept_up": lastw.processed_total / run.images_sent if run.images_sent else math.nan,
@@ -250,6 +260,8 @@ def make_report(opts: SoakOptions, run: _Run, elapsed_s: float) -> dict[str, Any
             "width": opts.width,
             "height": opts.height,
             "rate_hz": opts.rate_hz,
+            "speed": opts.speed,
+            "input_rate_hz": opts.rate_hz * opts.speed,
             "clip_s": opts.clip_s,
             "scenario": opts.scenario,
             "loop_mode": opts.loop_mode,
@@ -296,7 +308,7 @@ def report_lines(report: dict[str, Any]) -> list[str]:
 
     lines = [
         f"{PROG}: {c['elapsed_s'] / 60:.1f} min, {c['scenario']} {c['width']}x{c['height']} "
-        f"at {c['rate_hz']:g} Hz, loop mode {c['loop_mode']}, warm-up {c['warmup_s']:g} s, "
+        f"at {c['input_rate_hz']:g} Hz, loop mode {c['loop_mode']}, warm-up {c['warmup_s']:g} s, "
         f"{c['cpus']} CPUs",
         "  segment      RSS MiB  CPU ms/frame  engine ms/frame  frames/s  dropped  lat p95 ms",
     ]
@@ -318,7 +330,8 @@ def report_lines(report: dict[str, Any]) -> list[str]:
         f"({num(f['processing_growth_percent'], '+.1f')} %)",
         f"  frames: {n['images_sent']} sent, {n['processed']} processed "
         f"({num(n['kept_up'] and 100 * n['kept_up'])} %), {n['with_points']} with points, "
-        f"{n['dropped_queue_full']} dropped (queue full), {n['time_jumps']} time jumps",
+        f"{n['dropped_queue_full']} dropped (queue full, counted by the node; "
+        f"{n['images_received']} received), {n['time_jumps']} time jumps",
     ]
     return lines
 
@@ -373,7 +386,9 @@ def _load_clip(bag_path: Path) -> tuple[list[tuple[int, str, Any]], int]:
 class _Feeder(threading.Thread):
     """Publishes the clip looped with stamps shifted per loop (restamp mode)."""
 
-    def __init__(self, node: Any, clip: list[tuple[int, str, Any]], clip_ns: int) -> None:
+    def __init__(
+        self, node: Any, clip: list[tuple[int, str, Any]], clip_ns: int, speed: float = 1.0
+    ) -> None:
         super().__init__(name="owl-soak-feeder", daemon=True)
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import CameraInfo, Image, Imu
@@ -381,7 +396,11 @@ class _Feeder(threading.Thread):
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         kinds = {INPUTS[0]: Image, INPUTS[1]: CameraInfo, INPUTS[2]: Imu}
         self.pubs = {t: node.create_publisher(k, t, qos) for t, k in kinds.items()}
-        self.clip, self.clip_ns = clip, clip_ns
+        self.clip, self.clip_ns, self.speed = clip, clip_ns, speed
+        for _, topic, msg in clip if speed != 1.0 else ():
+            if topic == INPUTS[2]:  # a faster camera turns faster: scale the gyro
+                w = msg.angular_velocity
+                w.x, w.y, w.z = w.x * speed, w.y * speed, w.z * speed
         self.stop = threading.Event()
         self.images_sent = 0
         self.end_mono = math.inf
@@ -397,7 +416,7 @@ class _Feeder(threading.Thread):
         loop = 0
         while not self.stop.is_set():
             for offset, topic, msg in self.clip:
-                at = loop * self.clip_ns + offset
+                at = round((loop * self.clip_ns + offset) / self.speed)
                 due = mono0 + at * 1e-9
                 if due >= self.end_mono:
                     return
@@ -412,7 +431,10 @@ class _Feeder(threading.Thread):
             loop += 1
 
 
-def _parse_window(values: dict[str, str], t_s: float) -> Window:
+def _parse_window(values: dict[str, str], t_s: float, images: int) -> Window:
+    """A Window from the ``owl: processing`` values; ``images``: the node's images_total
+    (``owl: input``) of the same report."""
+
     def f(key: str) -> float:
         try:
             return float(values.get(key, "nan"))
@@ -431,6 +453,8 @@ def _parse_window(values: dict[str, str], t_s: float) -> Window:
         i("dropped_queue_full_total"),
         i("time_jumps_total"),
         f("latency_ms_p95"),
+        f("processing_ms_max"),
+        images,
     )
 
 
@@ -499,9 +523,13 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
     t0 = [time.monotonic()]
 
     def on_diag(msg: Any) -> None:
-        for rec in msg_to_records(msg)[1]:
-            if rec.name == "owl: processing":
-                run.windows.append(_parse_window(rec.value_map(), time.monotonic() - t0[0]))
+        records = {rec.name: rec.value_map() for rec in msg_to_records(msg)[1]}
+        if "owl: processing" in records:
+            images = records.get("owl: input", {}).get("images_total", "0")
+            window = _parse_window(
+                records["owl: processing"], time.monotonic() - t0[0], int(float(images))
+            )
+            run.windows.append(window)
 
     def on_cloud(_msg: Any) -> None:
         run.clouds += 1
@@ -514,7 +542,7 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
     reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, reliable)
     node.create_subscription(PointCloud2, "/owl/points", on_cloud, reliable)
-    feeder = _Feeder(node, clip, clip_ns) if opts.loop_mode == "restamp" else None
+    feeder = _Feeder(node, clip, clip_ns, opts.speed) if opts.loop_mode == "restamp" else None
     if feeder is None:
         from sensor_msgs.msg import Image
 
@@ -544,6 +572,7 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
             feeder.start()
         else:
             replay_cmd = [sys.executable, "-m", "bags.replay", str(bag), "--loop", "-q"]
+            replay_cmd += ["--rate", str(opts.speed)]
             replayer = subprocess.Popen(
                 [*replay_cmd, "--topics", *INPUTS],
                 env=env,
@@ -622,6 +651,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, default=320, help="image width, px (default 320)")
     p.add_argument("--height", type=int, default=240, help="image height, px (default 240)")
     p.add_argument("--rate", type=float, default=30.0, help="frame rate, Hz (default 30)")
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="play S times faster (default 1): e.g. an overload test; restamp mode scales the "
+        "stamps and gyro rates, replay mode passes --rate",
+    )
     p.add_argument("--clip-seconds", type=float, default=4.0, help="bag length, s (default 4)")
     p.add_argument("--scenario", default="street", help="owl_make_bag scenario (default street)")
     p.add_argument(
@@ -651,6 +687,7 @@ def options_from_args(ns: argparse.Namespace) -> SoakOptions:
         ("--width", ns.width, ns.width >= 32),
         ("--height", ns.height, ns.height >= 32),
         ("--rate", ns.rate, ns.rate > 0 and math.isfinite(ns.rate)),
+        ("--speed", ns.speed, 0 < ns.speed <= 20),
         ("--clip-seconds", ns.clip_seconds, ns.clip_seconds >= 0.5),
         ("--sample", ns.sample, ns.sample > 0),
         ("--warmup", ns.warmup, ns.warmup is None or 0 <= ns.warmup < ns.minutes * 60),
@@ -667,6 +704,7 @@ def options_from_args(ns: argparse.Namespace) -> SoakOptions:
         width=int(ns.width),
         height=int(ns.height),
         rate_hz=float(ns.rate),
+        speed=float(ns.speed),
         clip_s=float(ns.clip_seconds),
         scenario=ns.scenario,
         loop_mode=ns.loop_mode,
