@@ -259,6 +259,12 @@ class LocalFit:
     valid: BoolArray
 
 
+# Entry (i, j) of the local rule's normal matrix in the (N, 16) layout taken from the
+# extended sums of fit_local_looming: 0 dd, 1 d1 fd, 2 d2 fd, 6 -d1 fxd, 7 -d2 fxd,
+# 12..14 |f|^2 (d1 d1, d1 d2, d2 d2), 15 zero (L and c do not couple).
+_NORMAL_INDEX = np.array([0, 1, 2, 15, 1, 12, 13, 6, 2, 13, 14, 7, 15, 6, 7, 0])
+
+
 def fit_local_looming(
     bearings: npt.ArrayLike,
     derotated: npt.ArrayLike,
@@ -367,21 +373,14 @@ def fit_local_looming(
     normal = np.zeros((n, 4, 4))
     r2 = radius**2
     for it in range(iterations + 1):
-        sums = np.einsum("nqk,nk->nq", products, weights) / r2[:, None]
-        normal = np.empty((n, 4, 4))
-        normal[:, 0, 0] = normal[:, 3, 3] = sums[:, 0]
-        normal[:, 0, 1] = normal[:, 1, 0] = sums[:, 1]
-        normal[:, 0, 2] = normal[:, 2, 0] = sums[:, 2]
-        normal[:, 0, 3] = normal[:, 3, 0] = 0.0
-        normal[:, 1, 1] = ff * sums[:, 3]
-        normal[:, 1, 2] = normal[:, 2, 1] = ff * sums[:, 4]
-        normal[:, 2, 2] = ff * sums[:, 5]
-        normal[:, 1, 3] = normal[:, 3, 1] = sums[:, 6]
-        normal[:, 2, 3] = normal[:, 3, 2] = sums[:, 7]
+        sums = (products @ weights[:, :, None])[..., 0] / r2[:, None]
+        # (N, 14): the 12 sums, then N11..N22 (x |f|^2) and a zero; gathered into (N, 4, 4)
+        ext = np.concatenate([sums, ff[:, None] * sums[:, 3:6], np.zeros((n, 1))], axis=1)
+        normal = ext[:, _NORMAL_INDEX].reshape(n, 4, 4)
         rhs = sums[:, 8:12]
         good = ok & np.all(np.isfinite(normal), axis=(1, 2))
         safe_normal = np.where(good[:, None, None], normal + ridge, np.eye(4))
-        x = np.linalg.solve(safe_normal, rhs[..., None])[..., 0]
+        x, inv00 = _solve_spd4(safe_normal, rhs)
         lo, g1, g2, c = (x[:, j : j + 1] for j in range(4))
         slope = g1 * d1 + g2 * d2
         r_1 = v1 - (lo * d1 + fa * slope - c * d2)
@@ -403,10 +402,9 @@ def fit_local_looming(
     rms = np.sqrt(np.sum(weights * resid**2, axis=1) / dof)
     sigma2 = np.maximum(rms, noise) ** 2
     # L and c are observable from the offsets alone (their normal block is sum |d|^2 I).
-    valid = ok & (used >= min_neighbours) & (normal[:, 0, 0] > 0)
-    valid &= np.all(np.isfinite(x), axis=1)
-    safe_normal = np.where(valid[:, None, None], normal + ridge, np.eye(4))
-    cov00 = np.linalg.inv(safe_normal)[:, 0, 0] / radius**2
+    valid = good & (used >= min_neighbours) & (normal[:, 0, 0] > 0)
+    valid &= np.all(np.isfinite(x), axis=1) & np.isfinite(inv00)
+    cov00 = np.where(valid, inv00, 1.0) / radius**2
     variance = np.where(valid, sigma2 * cov00, np.inf)
     valid &= np.sqrt(variance) <= max_l_sigma
     variance = np.where(valid, variance, np.inf)
@@ -415,6 +413,51 @@ def fit_local_looming(
     slant = np.where(valid[:, None], x[:, 1:3], np.nan)
     curl = np.where(valid, x[:, 3], np.nan)
     return LocalFit(looming, variance, slant, curl, rms, quality, used.astype(np.int64), valid)
+
+
+def _solve_spd4(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Batched Cholesky solve of symmetric positive-definite 4x4 systems, written out.
+
+    Faster than ``np.linalg.solve`` plus ``np.linalg.inv`` for the many small systems of
+    :func:`fit_local_looming` (every step is one operation on (N,) arrays).
+
+    Args:
+        a: (N, 4, 4) float64 symmetric positive-definite matrices (lower triangle read).
+        b: (N, 4) float64 right-hand sides.
+
+    Returns:
+        x: (N, 4) float64 solutions of ``a x = b``; NaN rows where ``a`` is not
+        positive definite. inv00: (N,) float64 ``inv(a)[0, 0]`` (NaN likewise).
+    """
+
+    def root(v: FloatArray) -> FloatArray:
+        out: FloatArray = np.sqrt(np.where(v > 0, v, np.nan))
+        return out
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        l00 = root(a[:, 0, 0])
+        l10, l20, l30 = a[:, 1, 0] / l00, a[:, 2, 0] / l00, a[:, 3, 0] / l00
+        l11 = root(a[:, 1, 1] - l10 * l10)
+        l21 = (a[:, 2, 1] - l20 * l10) / l11
+        l31 = (a[:, 3, 1] - l30 * l10) / l11
+        l22 = root(a[:, 2, 2] - l20 * l20 - l21 * l21)
+        l32 = (a[:, 3, 2] - l30 * l20 - l31 * l21) / l22
+        l33 = root(a[:, 3, 3] - l30 * l30 - l31 * l31 - l32 * l32)
+        y0 = b[:, 0] / l00
+        y1 = (b[:, 1] - l10 * y0) / l11
+        y2 = (b[:, 2] - l20 * y0 - l21 * y1) / l22
+        y3 = (b[:, 3] - l30 * y0 - l31 * y1 - l32 * y2) / l33
+        x3 = y3 / l33
+        x2 = (y2 - l32 * x3) / l22
+        x1 = (y1 - l21 * x2 - l31 * x3) / l11
+        x0 = (y0 - l10 * x1 - l20 * x2 - l30 * x3) / l00
+        # inv(a)[0, 0] = |z|^2 with low z = e0
+        z0 = 1.0 / l00
+        z1 = -l10 * z0 / l11
+        z2 = -(l20 * z0 + l21 * z1) / l22
+        z3 = -(l30 * z0 + l31 * z1 + l32 * z2) / l33
+    inv00: FloatArray = z0 * z0 + z1 * z1 + z2 * z2 + z3 * z3
+    return np.stack([x0, x1, x2, x3], axis=1), inv00
 
 
 @dataclass(frozen=True)

@@ -217,3 +217,17 @@ def test_bad_shapes_raise_with_the_shape() -> None:
         motion.derotate(np.zeros((4, 3)), np.zeros((4, 3)), np.zeros(2))
     with pytest.raises(InvalidInputError, match="heading"):
         motion.looming_from_heading(np.ones((1, 3)), np.ones((1, 3)), np.zeros(3))
+
+
+def test_batched_spd_solve_matches_lapack() -> None:
+    # fit_local_looming solves its (N, 4, 4) normal equations with a written-out Cholesky
+    rng = np.random.default_rng(5)
+    jac = rng.normal(size=(200, 12, 4)) * rng.uniform(1e-3, 1e3, size=(200, 1, 4))
+    a = np.einsum("nki,nkj->nij", jac, jac) + 1e-9 * np.eye(4)
+    b = rng.normal(size=(200, 4))
+    x, inv00 = motion._solve_spd4(a, b)
+    np.testing.assert_allclose(x, np.linalg.solve(a, b[..., None])[..., 0], rtol=1e-8)
+    np.testing.assert_allclose(inv00, np.linalg.inv(a)[:, 0, 0], rtol=1e-8)
+    indefinite = np.diag([1.0, -1.0, 1.0, 1.0])[None]
+    x_bad, inv_bad = motion._solve_spd4(indefinite, np.ones((1, 4)))
+    assert np.all(np.isnan(x_bad)) and np.isnan(inv_bad[0])
