@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -253,3 +254,57 @@ def test_three_times_the_processing_rate_memory_and_latency_bounded(
     for seg in rep["segments"]:
         if seg["latency_ms_p95"] is not None and seg["processing_ms_max"] is not None:
             assert seg["latency_ms_p95"] <= (queue + 2) * seg["processing_ms_max"] + 50, seg
+
+
+def test_owl_record_reports_an_incompatible_publisher(
+    ros_domain_env: dict[str, str], collector: Any, tmp_path: Path
+) -> None:
+    """owl_record subscribes reliably when the first publisher is reliable (the product's
+    one reliable subscription of sensor data); a best-effort publisher that appears later
+    cannot be matched: reported on stderr, not silently lost."""
+    import threading
+
+    from std_msgs.msg import String
+
+    topic = "/robust/chatter"
+    reliable = collector.node.create_publisher(
+        String, topic, QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    )
+    out = tmp_path / "rec"
+    rec = subprocess.Popen(
+        [sys.executable, "-m", "bags.record", str(out), topic],
+        env=ros_domain_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(rec.stderr), daemon=True)
+    reader.start()
+    try:
+        collector.wait_for(
+            lambda: any(f"recording {topic}" in ln and "reliable" in ln for ln in lines),
+            20.0,
+            f"owl_record subscribing {topic} reliably",
+        )
+        collector.wait_for(lambda: reliable.get_subscription_count() >= 1, 10.0, "matching")
+        best_effort = collector.node.create_publisher(String, topic, qos_profile_sensor_data)
+        collector.wait_for(
+            lambda: any("incompatible" in ln for ln in lines), 10.0, "the QoS warning"
+        )
+        for i in range(5):
+            reliable.publish(String(data=f"r{i}"))
+            best_effort.publish(String(data=f"b{i}"))
+        time.sleep(0.5)
+    finally:
+        rec.send_signal(signal.SIGINT)
+        rec.wait(timeout=30)
+        reader.join(timeout=5)
+    assert rec.returncode == 0, "".join(lines)
+    (warning,) = [ln for ln in lines if "incompatible" in ln]
+    # rclpy's incompatible-QoS warning (owl_record keeps the default handler)
+    assert topic in warning and "RELIABILITY" in warning
+    assert "incompatible QoS" in warning and "No messages will be received" in warning
+    with BagReader(out) as bag:
+        got = [bag.deserialize(m).data for m in bag.messages([topic])]
+    assert got == [f"r{i}" for i in range(5)]  # the best-effort messages were not recorded
