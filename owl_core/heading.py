@@ -201,22 +201,27 @@ def _refine(
     if np.sum(fu @ h) > 0:  # f = -t_perp/r: f . t < 0 for static points in front
         h = -h
     delta = np.zeros(3)
-    cov: FloatArray = np.eye(5)
+    normal = np.eye(5)
+    jac = np.zeros((eu.shape[0], 5))
     for it in range(opts.irls_iterations + 2):
         u1, u2 = _orthonormal(h)
-        cos = eu @ h
+        # projections of every bearing (and of n = e x f) on h, delta, u1, u2 at once
+        ep = eu @ np.stack([h, delta, u1, u2], axis=1)  # (N, 4)
+        npj = nvec @ np.stack([h, u1, u2], axis=1)  # (N, 3)
+        cos, ed = ep[:, 0], ep[:, 1]
         sin = np.maximum(np.sqrt(np.maximum(1.0 - cos * cos, 0.0)), opts.min_sin)
-        scale = sin * su
-        tperp = h[None, :] - cos[:, None] * eu  # d raw / d delta
-        res = (nvec @ h + tperp @ delta) / scale
+        inv_scale = 1.0 / (sin * su)
+        # raw residual h.n + tperp.delta with tperp = h - (h.e) e (d raw / d delta)
+        res = (npj[:, 0] + h @ delta - cos * ed) * inv_scale
         if it < opts.irls_iterations:
             w = 1.0 / (1.0 + (res / opts.cauchy_sigma) ** 2)
         else:
             w = (np.abs(res) < opts.inlier_sigma).astype(np.float64)
-        dh = nvec + delta[None, :] - (eu @ delta)[:, None] * eu  # d raw / d h
-        jac = np.column_stack([dh @ u1, dh @ u2, tperp]) / scale[:, None]  # (N, 5)
-        if not estimate_rotation:
-            jac[:, 2:] = 0.0
+        # d raw / d h = n + delta - (e.delta) e, along u1 and u2
+        jac[:, 0] = (npj[:, 1] + delta @ u1 - ed * ep[:, 2]) * inv_scale
+        jac[:, 1] = (npj[:, 2] + delta @ u2 - ed * ep[:, 3]) * inv_scale
+        if estimate_rotation:
+            jac[:, 2:] = (h[None, :] - cos[:, None] * eu) * inv_scale[:, None]
         wj = jac * w[:, None]
         normal = wj.T @ jac
         normal[2:, 2:] += prior_inv
@@ -226,7 +231,8 @@ def _refine(
         h = h + step[0] * u1 + step[1] * u2
         h /= np.linalg.norm(h)
         delta = delta + step[2:]
-        cov = np.asarray(np.linalg.inv(normal + 1e-12 * np.eye(5)), dtype=np.float64)
+    # covariance from the last iteration's normal matrix
+    cov: FloatArray = np.asarray(np.linalg.inv(normal + 1e-12 * np.eye(5)), dtype=np.float64)
     cos = eu @ h
     sin = np.maximum(np.sqrt(np.maximum(1.0 - cos * cos, 0.0)), opts.min_sin)
     res = (nvec @ h + (h[None, :] - cos[:, None] * eu) @ delta) / (sin * su)
@@ -339,11 +345,24 @@ def estimate_motion(
         if h_init.shape != (3,) or not np.all(np.isfinite(h_init)) or not np.any(h_init):
             raise InvalidInputError(f"initial_heading must be a finite (3,) vector, got {h_init}")
         starts.append(h_init / np.linalg.norm(h_init))
-    for idx in order:
-        cand = hyp[idx]
-        if all(abs(float(cand @ s0)) < np.cos(np.radians(2.0)) for s0 in starts):
-            starts.append(cand)
-        if len(starts) >= (opts.starts if initial_heading is None else 1 + opts.warm_starts):
+    # Greedy, best score first: a hypothesis within 2 deg of a chosen start is skipped
+    # (at least the best hypothesis is considered, as a candidate next to a warm start).
+    wanted = opts.starts if initial_heading is None else 1 + opts.warm_starts
+    cands = hyp[order]
+    cos_lim = np.cos(np.radians(2.0))
+    free = np.ones(cands.shape[0], dtype=bool)
+    for s0 in starts:
+        free &= np.abs(cands @ s0) < cos_lim
+    pos = 0
+    while pos < cands.shape[0]:
+        nxt = np.flatnonzero(free[pos:])
+        if nxt.size == 0 or (len(starts) >= wanted and nxt[0] > 0):
+            break
+        pos += int(nxt[0])
+        starts.append(cands[pos])
+        free &= np.abs(cands @ cands[pos]) < cos_lim
+        pos += 1
+        if len(starts) >= wanted:
             break
 
     # 3. Gauss-Newton with Cauchy weights on (h, delta), prior on delta, from each start;
