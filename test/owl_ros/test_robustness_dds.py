@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import signal
 import subprocess
 import sys
@@ -308,3 +309,86 @@ def test_owl_record_reports_an_incompatible_publisher(
     with BagReader(out) as bag:
         got = [bag.deserialize(m).data for m in bag.messages([topic])]
     assert got == [f"r{i}" for i in range(5)]  # the best-effort messages were not recorded
+
+
+def test_malformed_messages_to_the_live_node(
+    ros_domain_env: dict[str, str], collector: Any, bag: Path, tmp_path: Path
+) -> None:
+    """Real malformed messages over DDS between two replays: an unknown encoding, image
+    data shorter than step x height, NaN and inf gyro rates, and a camera_info with zero
+    focal length followed by the valid one. The node process survives, names each
+    problem in /diagnostics and processes the next replay (stamps 10 s later)."""
+    from sensor_msgs.msg import CameraInfo, Image, Imu
+
+    first = piece(bag, tmp_path / "a", 0.0, 1.2, tn.INPUTS)
+    later = piece(bag, tmp_path / "b", 1.2, 2.5, tn.INPUTS, 2 * SHIFT_NS)
+    with BagReader(bag) as reader:
+        raw_image = next(reader.messages([IMAGE]))
+        raw_info = next(reader.messages([INFO]))
+        raw_imu = next(reader.messages([IMU]))
+    reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    pub_image = collector.node.create_publisher(Image, IMAGE, reliable)
+    pub_info = collector.node.create_publisher(CameraInfo, INFO, reliable)
+    pub_imu = collector.node.create_publisher(Imu, IMU, reliable)
+    bad_at = first[-1] + SHIFT_NS  # between the two replays
+
+    def image(**fields: Any) -> Any:
+        msg = deserialize_message(raw_image.data, Image)
+        msg.header.stamp = ns_to_stamp(bad_at)
+        for name, value in fields.items():
+            setattr(msg, name, value)
+        return msg
+
+    node = tn.start_node(ros_domain_env)
+    try:
+        collector.wait_for_node()
+        tn.replay(ros_domain_env, tmp_path / "a")
+        collector.wait_settled(1)
+        n_first = len(collector.clouds)
+        collector.wait_for(
+            lambda: all(p.get_subscription_count() >= 1 for p in (pub_image, pub_info, pub_imu)),
+            10.0,
+            "the node's subscriptions",
+        )
+        mark = len(collector.diagnostics)
+        for k, (x, y) in enumerate(((math.nan, 0.0), (0.0, math.inf))):
+            imu = deserialize_message(raw_imu.data, Imu)
+            imu.header.stamp = ns_to_stamp(bad_at + k * 1_000_000)
+            imu.angular_velocity.x, imu.angular_velocity.y = x, y
+            pub_imu.publish(imu)
+        pub_image.publish(image(encoding="yuv422"))
+        short = bytes(image().data)
+        pub_image.publish(image(data=short[: len(short) // 3]))
+        wait_for_diag(
+            collector,
+            mark,
+            lambda r: (
+                r["owl: input"][2]["bad_images_total"] == "2"
+                and r["owl: input"][2]["imu_non_finite_total"] == "2"
+            ),
+            "two bad images and two non-finite IMU samples counted",
+        )
+        info = deserialize_message(raw_info.data, CameraInfo)
+        good_k = list(info.k)
+        info.k = [0.0] * 9
+        pub_info.publish(info)
+        zero = wait_for_diag(
+            collector,
+            mark,
+            lambda r: "camera_info.k" in r["owl: input"][2]["camera_info_error"],
+            "the zero camera_info named",
+        )
+        assert zero["owl: input"][0] == 2  # ERROR: no processing without calibration
+        info.k = good_k
+        pub_info.publish(info)
+        tn.replay(ros_domain_env, tmp_path / "b")
+        collector.wait_settled(n_first + 1)
+        assert node.poll() is None
+    finally:
+        code, err = tn.stop_node(node)
+    assert code == 0, err
+    assert "Traceback" not in err
+    tn.check_clouds(collector.clouds[n_first:], later, collector)
+    _, _, inputs = collector.status("input")
+    assert inputs["camera_info_error"] == ""  # the valid one took over again
+    assert int(inputs["bad_images_total"]) == 2
