@@ -1,7 +1,8 @@
 """owl_soak (``make soak``): a rendered bag looped at 30 Hz through a live ``owl_node``.
 
-Renders a scenario bag (``owl_make_bag``, default street, 4 s, 320x240: small enough that
-the node keeps up with 30 Hz on a 2-core machine shared with other work), starts
+Renders a scenario bag (``owl_make_bag``, default street, 4 s, 320x240: the size at which
+the node keeps up with 30 Hz on a 2-core machine shared with other jobs; the frames it
+drops when those jobs take the CPU are counted and reported), starts
 ``owl_node`` in its own process on a private ROS domain and feeds it the bag's image,
 camera_info and IMU messages over real DDS, looped, at the recorded pace, for
 ``--minutes`` (default 10). Two ways of looping:
