@@ -23,11 +23,12 @@ Measured while it runs:
 
 Report (table, or one JSON object with ``--json``): RSS at the end of the warm-up and at
 the end, growth in % (goal < 10 %); per-frame time in the first and the last segment
-after warm-up (goal: no growth, i.e. < 10 % more). The per-frame goal is judged on the
-node's CPU time per processed frame, which measures the node's own work; the engine's
-wall time per frame is reported next to it but also measures whatever else the machine
-runs. Exit status 0 when both goals are met, 1 when one fails or the node dies, 2 on bad
-options.
+(minute) after warm-up (goal: no growth, i.e. < 10 % more). The per-frame figure judged
+is the 10th percentile of the engine's per-frame time over the segment's one-second
+windows: other jobs on a shared machine only ever add time to a frame, so a low
+percentile follows the node's own work (a growing cost raises it too) while medians and
+CPU time per frame (both reported) also move with the machine's load. Exit status 0 when
+both goals are met, 1 when one fails or the node dies, 2 on bad options.
 
     python -m owl_ros.soak                     # 10 minutes (make soak)
     python -m owl_ros.soak --minutes 0.5 --json
@@ -184,6 +185,7 @@ def _segment(run: _Run, t0: float, t1: float) -> dict[str, float]:
         "t1_s": t1,
         "rss_mib": _interp(st, [s.rss_mib for s in run.samples], t1),
         "processing_ms": float(np.median(proc)) if proc else math.nan,
+        "processing_ms_p10": float(np.percentile(proc, 10)) if proc else math.nan,
         "processing_ms_max": max(
             (w.processing_ms_max for w in wins if math.isfinite(w.processing_ms_max)),
             default=math.nan,
@@ -239,8 +241,9 @@ def make_report(opts: SoakOptions, run: _Run, elapsed_s: float) -> dict[str, Any
     rss_growth = _growth(rss0, rss1)
     cpu_growth = _growth(first["cpu_ms_per_frame"], last["cpu_ms_per_frame"])
     wall_growth = _growth(first["processing_ms"], last["processing_ms"])
+    p10_growth = _growth(first["processing_ms_p10"], last["processing_ms_p10"])
     rss_ok = math.isfinite(rss_growth) and rss_growth < RSS_GOAL
-    time_ok = math.isfinite(cpu_growth) and cpu_growth < FRAME_TIME_GOAL
+    time_ok = math.isfinite(p10_growth) and p10_growth < FRAME_TIME_GOAL
     lastw = run.windows[-1]
     frames = {
         "images_sent": run.images_sent,
@@ -288,6 +291,9 @@ def make_report(opts: SoakOptions, run: _Run, elapsed_s: float) -> dict[str, Any
             "processing_ms_first": first["processing_ms"],
             "processing_ms_last": last["processing_ms"],
             "processing_growth_percent": 100.0 * wall_growth,
+            "processing_ms_p10_first": first["processing_ms_p10"],
+            "processing_ms_p10_last": last["processing_ms_p10"],
+            "growth_percent": 100.0 * p10_growth,
             "goal_percent": 100.0 * FRAME_TIME_GOAL,
             "ok": time_ok,
         },
@@ -311,12 +317,14 @@ def report_lines(report: dict[str, Any]) -> list[str]:
         f"{PROG}: {c['elapsed_s'] / 60:.1f} min, {c['scenario']} {c['width']}x{c['height']} "
         f"at {c['input_rate_hz']:g} Hz, loop mode {c['loop_mode']}, warm-up {c['warmup_s']:g} s, "
         f"{c['cpus']} CPUs",
-        "  segment      RSS MiB  CPU ms/frame  engine ms/frame  frames/s  dropped  lat p95 ms",
+        "  segment      RSS MiB  engine ms/frame p10 / median  CPU ms/frame  frames/s  dropped"
+        "  lat p95 ms",
     ]
     for s in report["segments"]:
         lines.append(
             f"  {s['t0_s']:5.0f}-{s['t1_s']:<5.0f}  {num(s['rss_mib']):>7}  "
-            f"{num(s['cpu_ms_per_frame'], '.2f'):>12}  {num(s['processing_ms'], '.2f'):>15}  "
+            f"{num(s['processing_ms_p10'], '.2f'):>20} / {num(s['processing_ms'], '.2f'):<6}  "
+            f"{num(s['cpu_ms_per_frame'], '.2f'):>12}  "
             f"{num(s['frames_per_s']):>8}  {s['dropped']:>7}  {num(s['latency_ms_p95']):>10}"
         )
     verdict = {True: "OK", False: "FAIL"}
@@ -324,11 +332,13 @@ def report_lines(report: dict[str, Any]) -> list[str]:
         f"  RSS: {num(r['warmup_mib'])} MiB after warm-up -> {num(r['end_mib'])} MiB at the end "
         f"({num(r['growth_percent'], '+.2f')} %, slope {num(r['slope_mib_per_min'], '+.3f')} "
         f"MiB/min; goal < {r['goal_percent']:g} %): {verdict[r['ok']]}",
-        f"  per-frame CPU: {num(f['cpu_ms_per_frame_first'], '.2f')} -> "
-        f"{num(f['cpu_ms_per_frame_last'], '.2f')} ms ({num(f['cpu_growth_percent'], '+.1f')} %"
-        f"; goal < {f['goal_percent']:g} %): {verdict[f['ok']]}; engine wall time "
+        f"  per-frame time (engine, p10): {num(f['processing_ms_p10_first'], '.2f')} -> "
+        f"{num(f['processing_ms_p10_last'], '.2f')} ms ({num(f['growth_percent'], '+.1f')} %; "
+        f"goal < {f['goal_percent']:g} %): {verdict[f['ok']]}; median "
         f"{num(f['processing_ms_first'], '.2f')} -> {num(f['processing_ms_last'], '.2f')} ms "
-        f"({num(f['processing_growth_percent'], '+.1f')} %)",
+        f"({num(f['processing_growth_percent'], '+.1f')} %), node CPU per frame "
+        f"{num(f['cpu_ms_per_frame_first'], '.2f')} -> {num(f['cpu_ms_per_frame_last'], '.2f')}"
+        f" ms ({num(f['cpu_growth_percent'], '+.1f')} %)",
         f"  frames: {n['images_sent']} sent, {n['processed']} processed "
         f"({num(n['kept_up'] and 100 * n['kept_up'])} %), {n['with_points']} with points, "
         f"{n['dropped_queue_full']} dropped (queue full, counted by the node; "
