@@ -405,6 +405,15 @@ PARAMS: tuple[Param, ...] = (
         high=8,
         engine="tracker.lk_levels",
     ),
+    Param(
+        "tracker_lk_backward_levels",
+        "int",
+        _T.lk_backward_levels,
+        "pyramid levels of the forward-backward check pass (capped at tracker_lk_levels)",
+        low=0,
+        high=8,
+        engine="tracker.lk_backward_levels",
+    ),
 )
 
 _BY_NAME: dict[str, Param] = {p.name: p for p in PARAMS}
