@@ -564,6 +564,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="comma-separated cases to run, e.g. street,street+bias (default: the profile's)",
     )
     p.add_argument("--seconds", type=float, default=None, help="override seconds per case")
+    p.add_argument(
+        "--features", type=int, default=None, help="override features requested per frame"
+    )
     p.add_argument("--cache-dir", default="results/cache", help="rendered-frame cache")
     p.add_argument("--no-cache", action="store_true", help="render without reading/writing")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -592,6 +595,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             if not (math.isfinite(args.seconds) and args.seconds > 0):
                 raise BagError(f"--seconds must be positive, got {args.seconds}")
             profile = replace(profile, seconds=args.seconds)
+        if args.features is not None:
+            if args.features <= 0:
+                raise BagError(f"--features must be positive, got {args.features}")
+            profile = replace(profile, features=args.features)
 
         def log(text: str) -> None:
             if not args.quiet:

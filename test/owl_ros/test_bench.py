@@ -92,11 +92,15 @@ def test_bench_scores_are_owl_eval_scores_and_a_wrong_heading_shows_exactly():
 
 def test_cli_json_and_errors(capsys, tmp_path):
     argv = ["--quick", "--json", "--cases", "cube", "--seconds", "0.2", "--quiet"]
-    assert bench.main([*argv, "--cache-dir", str(tmp_path)]) == 0
+    assert bench.main([*argv, "--features", "120", "--cache-dir", str(tmp_path)]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["image_size"] == "320x240" and doc["profile"] == "quick"
+    assert doc["features"] == 120 and 0 < doc["features_per_frame"] <= 120
     assert bench.main(["--cases", "nowhere", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "nowhere" in err
     assert bench.main(["--quick", "--seconds", "-1", "--quiet"]) == 2
     assert "--seconds" in capsys.readouterr().err
+    assert bench.main(["--quick", "--features", "0", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--features" in err and "0" in err
