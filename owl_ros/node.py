@@ -123,30 +123,17 @@ class OwlNode(Node):
         self._stop = threading.Event()
 
         sensor = _sensor_qos(IMAGE_DEPTH)
+        self._inputs: list[tuple[Any, str]] = []  # (subscription, expected type name)
         if self.options.image_transport == "compressed":
-            self.create_subscription(
-                CompressedImage, "image/compressed", self._on_image, sensor,
-                event_callbacks=self._sub_events("image/compressed"),
-            )  # fmt: skip
+            self._subscribe(CompressedImage, "image/compressed", self._on_image, sensor)
         else:
-            self.create_subscription(
-                Image, "image", self._on_image, sensor, event_callbacks=self._sub_events("image")
-            )
-        self.create_subscription(
-            CameraInfo, "camera_info", self._on_camera_info, sensor,
-            event_callbacks=self._sub_events("camera_info"),
-        )  # fmt: skip
-        self.create_subscription(
-            Imu, "imu", self._on_imu, _sensor_qos(IMU_DEPTH),
-            event_callbacks=self._sub_events("imu"),
-        )  # fmt: skip
+            self._subscribe(Image, "image", self._on_image, sensor)
+        self._subscribe(CameraInfo, "camera_info", self._on_camera_info, sensor)
+        self._subscribe(Imu, "imu", self._on_imu, _sensor_qos(IMU_DEPTH))
         if self.options.speed_source != "none":
             kind = Odometry if self.options.speed_source == "odometry" else TwistStamped
             topic = self.options.speed_topic
-            self.create_subscription(
-                kind, topic, self._on_speed, _sensor_qos(IMAGE_DEPTH),
-                event_callbacks=self._sub_events(topic),
-            )  # fmt: skip
+            self._subscribe(kind, topic, self._on_speed, _sensor_qos(IMAGE_DEPTH))
 
         reliable = _reliable_qos()
         self._points_pub = self.create_publisher(
@@ -193,10 +180,30 @@ class OwlNode(Node):
             values[p.name] = _param_value(param.value)
         return values, lines
 
-    def _sub_events(self, topic: str) -> SubscriptionEventCallbacks:
-        return SubscriptionEventCallbacks(
+    def _subscribe(self, kind: Any, topic: str, callback: Any, qos: QoSProfile) -> None:
+        events = SubscriptionEventCallbacks(
             incompatible_qos=lambda info: self._qos_event("subscription", topic, info)
         )
+        sub = self.create_subscription(kind, topic, callback, qos, event_callbacks=events)
+        package = kind.__module__.split(".")[0]
+        self._inputs.append((sub, f"{package}/msg/{kind.__name__}"))
+
+    def _foreign_publishers(self) -> list[str]:
+        """Publishers on an input topic whose type is not the one subscribed.
+
+        DDS never matches them, and Fast DDS raises no incompatible-type event, so without
+        this graph query the only symptom would be "no images".
+        """
+        found = []
+        for sub, expected in self._inputs:
+            for info in self.get_publishers_info_by_topic(sub.topic_name):
+                if info.topic_type != expected:
+                    who = f"{info.node_namespace.rstrip('/')}/{info.node_name}"
+                    found.append(
+                        f"{sub.topic_name}: publisher {who} offers type {info.topic_type}, "
+                        f"subscribed as {expected}"
+                    )
+        return found
 
     def _pub_events(self, topic: str) -> PublisherEventCallbacks:
         return PublisherEventCallbacks(
@@ -308,7 +315,7 @@ class OwlNode(Node):
             pub.publish(array_to_image(picture, "bgr8", header=out.header))
 
     def _publish_diagnostics(self, now_mono_ns: int) -> None:
-        records = self._pipeline.diagnostics(now_mono_ns)
+        records = self._pipeline.diagnostics(now_mono_ns, self._foreign_publishers())
         stamp = self.get_clock().now().nanoseconds
         self._diag_pub.publish(records_to_msg(records, max(stamp, 0)))
 

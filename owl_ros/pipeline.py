@@ -581,12 +581,20 @@ class Pipeline:
 
     # ------------------------------------------------------------------ diagnostics
 
-    def diagnostics(self, now_ns: int, reset_window: bool = True) -> list[StatusRecord]:
+    def diagnostics(
+        self, now_ns: int, wrong_type: Sequence[str] = (), reset_window: bool = True
+    ) -> list[StatusRecord]:
         """Status records for /diagnostics over the window since the last call.
 
-        Three statuses: ``owl: input`` (rates, drops, bad input, QoS), ``owl: processing``
-        (frames, points, timing, latency, reason for empty output, time jumps) and
-        ``owl: gyro`` (bias estimate, IMU coverage).
+        Three statuses: ``owl: input`` (rates, drops, bad input, QoS, publishers of the
+        wrong type), ``owl: processing`` (frames, points, timing, latency, reason for empty
+        output, time jumps) and ``owl: gyro`` (bias estimate, IMU coverage).
+
+        Args:
+            now_ns: monotonic time of the call, ns (closes the rate window).
+            wrong_type: one text per publisher on an input topic whose message type is not
+                the subscribed one (the node finds them in the ROS graph).
+            reset_window: start a new rate window.
         """
         win = self._window
         c = win.counts
@@ -606,6 +614,9 @@ class Pipeline:
         elif self._camera is None:
             in_level = Level.ERROR
             problems.append("no camera_info received")
+        if wrong_type:
+            in_level = Level.ERROR
+            problems.append(f"wrong message type: {wrong_type[0]}")
         if c["images"] == 0:
             in_level = max(in_level, Level.WARN)
             problems.append("no images")
@@ -644,6 +655,7 @@ class Pipeline:
                 "last_imu_problem": self._last_imu_problem,
                 "qos_events_total": t["qos_events"],
                 "qos_last_event": self._qos_events[-1] if self._qos_events else "",
+                "wrong_type_publishers": "; ".join(wrong_type),
             },
         )
         dropped = c["dropped_queue_full"]

@@ -228,6 +228,36 @@ def test_every_input_publisher_qos_is_compatible(
     assert "incompatible" not in err
 
 
+def test_publisher_of_the_wrong_type_is_named(
+    ros_domain_env: dict[str, str], collector: Any
+) -> None:
+    """A CompressedImage publisher on the raw ``image`` topic is never matched by DDS and
+    raises no QoS event; the node finds it in the ROS graph and names topic, publisher and
+    type in "owl: input" (ERROR), instead of only "no images"."""
+    from sensor_msgs.msg import CompressedImage
+
+    collector.node.create_publisher(CompressedImage, IMAGE, qos_profile_sensor_data)
+    node = tn.start_node(ros_domain_env)
+    try:
+        collector.wait_for_node()
+        found = wait_for_diag(
+            collector,
+            0,
+            lambda r: r["owl: input"][2]["wrong_type_publishers"] != "",
+            "the wrong-type publisher named",
+            timeout=10.0,
+        )
+    finally:
+        code, err = tn.stop_node(node)
+    assert code == 0, err
+    level, message, values = found["owl: input"]
+    assert level == 2
+    assert "wrong message type" in message and "no images" in message
+    text = values["wrong_type_publishers"]
+    assert text.startswith(f"{IMAGE}: publisher /owl_test_collector offers type ")
+    assert "sensor_msgs/msg/CompressedImage" in text and "sensor_msgs/msg/Image" in text
+
+
 def test_three_times_the_processing_rate_memory_and_latency_bounded(
     ros_domain_env: dict[str, str],
 ) -> None:
