@@ -121,7 +121,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--wait-for-subscribers",
         action="store_true",
-        help="start only when every published topic has a matched subscriber",
+        help="start only when every published topic has a matched subscriber (then "
+        "--start-delay S: a best-effort subscriber matches the new publisher a moment after "
+        "the publisher matched it, and drops what arrives before)",
     )
     parser.add_argument(
         "--wait-timeout",

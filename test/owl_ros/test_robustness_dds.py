@@ -103,6 +103,13 @@ def wait_for_diag(collector: Any, since: int, what: Any, why: str, timeout: floa
     raise AssertionError(f"no diagnostics with {why}; last: {last}")
 
 
+def dropped_total(collector: Any) -> int:
+    """The node's count of frames dropped for a newer one, from the next diagnostics."""
+    n = len(collector.diagnostics)
+    collector.wait_for(lambda: len(collector.diagnostics) > n, 5.0, "the next diagnostics")
+    return int(collector.status("processing")[2]["dropped_queue_full_total"])
+
+
 def test_image_publisher_disappears_and_comes_back_later(
     ros_domain_env: dict[str, str], collector: Any, bag: Path, tmp_path: Path
 ) -> None:
@@ -155,10 +162,12 @@ def test_imu_publisher_disappears_and_comes_back(
         tn.replay(ros_domain_env, tmp_path / "p1")
         collector.wait_settled(1)
         n1 = len(collector.clouds)
+        dropped_before = dropped_total(collector)
         diag_mark = len(collector.diagnostics)
         tn.replay(ros_domain_env, tmp_path / "p2", "--topics", IMAGE, INFO)
         collector.wait_settled(n1 + 1)
         n2 = len(collector.clouds)
+        dropped = dropped_total(collector) - dropped_before
         silent = wait_for_diag(
             collector,
             diag_mark,
@@ -174,7 +183,9 @@ def test_imu_publisher_disappears_and_comes_back(
     tn.check_clouds(collector.clouds[:n1], before, collector)
     gone = {header_to_ns(c.header): c for c in collector.clouds[n1:n2]}
     assert set(gone) <= set(no_imu)
-    assert len(gone) >= 0.8 * len(no_imu)  # not held back waiting for the IMU
+    # not held back waiting for the IMU: each frame gave a cloud, or a newer frame replaced
+    # it while the machine was busy (newest wins, counted by the node)
+    assert len(gone) + dropped >= 0.8 * len(no_imu), (len(gone), dropped, len(no_imu))
     assert all(c.width == 0 for c in gone.values())  # require_gyro: no points without it
     reasons = [
         r["owl: processing"][2]["last_empty_reason"]
