@@ -34,11 +34,12 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 import numpy as np
 
 from bags import scenarios
+from bags.cli import OneLineErrorParser
 from bags.errors import BagError
 from bags.io import BagWriter, typestore
 from bags.scenarios import CAMERA_FRAME, IMU_FRAME, Frame, SimOptions, Simulation
@@ -58,13 +59,6 @@ TOPICS = {
     "range": ("/ground_truth/range", "sensor_msgs/msg/Image", "reliable"),
     "mask": ("/ground_truth/moving_mask", "sensor_msgs/msg/Image", "reliable"),
 }
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (no usage dump)."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def _floats(text: str, name: str, sizes: tuple[int, ...]) -> tuple[float, ...]:
@@ -97,7 +91,7 @@ def _distortion(text: str) -> tuple[float, ...]:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface."""
-    p = _Parser(
+    p = OneLineErrorParser(
         prog=PROG,
         description="Render a synthetic OWL scenario (images, IMU, ground truth) to a rosbag2 "
         "MCAP directory. Scenarios: " + ", ".join(scenarios.names()) + " (see --list).",

@@ -28,9 +28,9 @@ import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from types import FrameType
 from typing import Any, TextIO
 
+from bags.cli import StopRequest
 from bags.errors import BagError
 from bags.io import BagWriter
 from bags.replay import split_ros_args
@@ -167,16 +167,6 @@ def subscription_qos(publisher_infos: Sequence[Any], depth: int) -> tuple[Any, s
     return profile, kind
 
 
-class _Stop:
-    """Set by SIGINT/SIGTERM; the spin loop checks it every 0.1 s."""
-
-    def __init__(self) -> None:
-        self.requested = False
-
-    def __call__(self, signum: int, frame: FrameType | None) -> None:
-        self.requested = True
-
-
 class Recorder:
     """Discovers, subscribes and writes; driven by ``run``."""
 
@@ -271,7 +261,7 @@ def record(
     from rclpy.signals import SignalHandlerOptions
 
     writer = BagWriter(opts.out, overwrite=opts.overwrite)  # refuses an existing path early
-    stop = _Stop()
+    stop = StopRequest()
     old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     context = Context()
     rclpy.init(

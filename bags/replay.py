@@ -30,9 +30,9 @@ import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from types import FrameType
 from typing import Any, TextIO
 
+from bags.cli import StopRequest
 from bags.errors import BagError
 from bags.io import BagReader, TopicInfo
 from msg_adapters.errors import AdapterError
@@ -194,16 +194,6 @@ def publisher_qos(info: TopicInfo, depth: int) -> Any:
     )
 
 
-class _Stop:
-    """Set by SIGINT/SIGTERM; the replay loop checks it between short sleeps."""
-
-    def __init__(self) -> None:
-        self.requested = False
-
-    def __call__(self, signum: int, frame: FrameType | None) -> None:
-        self.requested = True
-
-
 class _Progress:
     """One self-overwriting status line on a terminal; otherwise a line every 10 s and at
     the end of each loop."""
@@ -267,7 +257,9 @@ def _resolve(
     return selected, outputs, classes
 
 
-def _wait_for_subscribers(publishers: dict[str, Any], opts: ReplayOptions, stop: _Stop) -> None:
+def _wait_for_subscribers(
+    publishers: dict[str, Any], opts: ReplayOptions, stop: StopRequest
+) -> None:
     deadline = time.monotonic() + opts.wait_timeout_s
     while not stop.requested:
         missing = [t for t, pub in publishers.items() if pub.get_subscription_count() < 1]
@@ -299,7 +291,7 @@ def replay(opts: ReplayOptions, ros_args: Sequence[str] = (), stream: TextIO = s
         infos = bag.topics
         start_ns, end_ns = bag.start_ns, bag.end_ns
         total = sum(infos[t].count for t in selected)
-        stop = _Stop()
+        stop = StopRequest()
         old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
         context = Context()
         rclpy.init(
@@ -375,7 +367,7 @@ def replay(opts: ReplayOptions, ros_args: Sequence[str] = (), stream: TextIO = s
     return sent
 
 
-def _sleep_until(deadline: float, stop: _Stop) -> None:
+def _sleep_until(deadline: float, stop: StopRequest) -> None:
     while not stop.requested:
         left = deadline - time.monotonic()
         if left <= 0:

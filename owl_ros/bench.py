@@ -41,13 +41,14 @@ import time  # noqa: E402
 from collections.abc import Callable, Sequence  # noqa: E402
 from dataclasses import dataclass, field, replace  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Any, NoReturn  # noqa: E402
+from typing import Any  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import numpy.typing as npt  # noqa: E402
 
 from bags import scenarios  # noqa: E402
+from bags.cli import OneLineErrorParser  # noqa: E402
 from bags.errors import BagError  # noqa: E402
 from bags.scenarios import SimOptions, Simulation  # noqa: E402
 from bags.sensors import ImuOptions  # noqa: E402
@@ -543,14 +544,9 @@ def report_lines(doc: dict[str, Any]) -> list[str]:
 # ------------------------------------------------------------------------ CLI
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface."""
-    p = _Parser(
+    p = OneLineErrorParser(
         prog=PROG,
         description="Benchmark OWL against the OpenCV two-view baseline (5-point essential "
         "matrix, and a gyro-aided variant) on the standard synthetic scenarios: per-stage "

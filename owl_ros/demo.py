@@ -26,10 +26,11 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 import numpy as np
 
+from bags.cli import OneLineErrorParser
 from bags.errors import BagError
 from owl_core.errors import OwlError
 
@@ -58,14 +59,9 @@ class _Log:
             )
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface."""
-    p = _Parser(
+    p = OneLineErrorParser(
         prog=PROG,
         description="Render a synthetic scenario, run the OWL pipeline (owl_process) on it, "
         "score it and the OpenCV baseline against ground truth, draw the figures and write "

@@ -37,11 +37,12 @@ import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from bags.cli import OneLineErrorParser
 from bags.errors import BagError
 from bags.io import BagReader
 
@@ -718,14 +719,9 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
 # ------------------------------------------------------------------------ CLI
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface."""
-    p = _Parser(
+    p = OneLineErrorParser(
         prog=PROG,
         description="Score an OWL result bag (owl/points, owl/heading) against the ground "
         "truth of a synthetic bag (owl_make_bag): heading error, range_over_speed error, "

@@ -35,11 +35,12 @@ from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, NoReturn, TextIO
+from typing import Any, TextIO
 
 import numpy as np
 import numpy.typing as npt
 
+from bags.cli import OneLineErrorParser
 from bags.errors import BagError, CorruptBagError
 from bags.io import BagReader, BagWriter, RawMessage, typestore
 from msg_adapters.diagnostics import records_to_msg
@@ -405,16 +406,9 @@ def process_bag(
 # ------------------------------------------------------------------------------ CLI
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (no usage dump)."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface."""
-    p = _Parser(
+    p = OneLineErrorParser(
         prog=PROG,
         description="Run the OWL pipeline of node 'owl' over a bag (no DDS, deterministic) "
         "and write owl/points, owl/heading and /diagnostics to an MCAP rosbag2.",

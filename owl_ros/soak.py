@@ -50,10 +50,11 @@ import time
 from collections.abc import Sequence
 from dataclasses import astuple, dataclass, field
 from pathlib import Path
-from typing import Any, NoReturn, TextIO
+from typing import Any, TextIO
 
 import numpy as np
 
+from bags.cli import OneLineErrorParser
 from owl_ros.latency import _proc_cpu_s, _proc_rss_mb
 
 PROG = "owl_soak"
@@ -650,14 +651,9 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
 # ------------------------------------------------------------------------------ CLI
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface."""
-    p = _Parser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p = OneLineErrorParser(prog=PROG, description=__doc__.split("\n\n")[0])
     p.add_argument("--minutes", type=float, default=10.0, help="soak duration (default 10)")
     p.add_argument("--width", type=int, default=320, help="image width, px (default 320)")
     p.add_argument("--height", type=int, default=240, help="image height, px (default 240)")
