@@ -28,6 +28,7 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -106,14 +107,16 @@ def render_clip(scenario: str, seconds: float, width: int, height: int, rate: fl
     return _Clip(images, imus, info, duration, sim.camera_to_imu_xyzw)
 
 
-def _proc_cpu_s(pid: int) -> float:
-    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
-    ticks = os.sysconf("SC_CLK_TCK")
-    return (int(fields[11]) + int(fields[12])) / ticks
+def proc_cpu_s(pid: int) -> float:
+    """User + system CPU time of process ``pid`` (all its threads), s, from /proc."""
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    fields = stat.rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _proc_rss_mb(pid: int) -> float:
-    for line in open(f"/proc/{pid}/status"):
+def proc_rss_mb(pid: int) -> float:
+    """Resident set size (VmRSS) of process ``pid``, MiB, from /proc; NaN when absent."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024.0
     return float("nan")
@@ -204,7 +207,7 @@ def measure(
                 if wait > 0:
                     time.sleep(wait)
                 if cpu0 is None and stamp >= window:
-                    cpu0, wall0 = _proc_cpu_s(node_proc.pid), time.monotonic()
+                    cpu0, wall0 = proc_cpu_s(node_proc.pid), time.monotonic()
                 msg.header.stamp = ns_to_stamp(stamp)
                 if kind == 0:
                     clip.info.header.stamp = msg.header.stamp
@@ -220,8 +223,8 @@ def measure(
                     break
             loop += 1
         time.sleep(1.0)
-        cpu1, wall1 = _proc_cpu_s(node_proc.pid), time.monotonic()
-        rss = _proc_rss_mb(node_proc.pid)
+        cpu1, wall1 = proc_cpu_s(node_proc.pid), time.monotonic()
+        rss = proc_rss_mb(node_proc.pid)
     finally:
         stop.set()
         spinner.join(timeout=2)

@@ -55,7 +55,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from bags.cli import OneLineErrorParser
-from owl_ros.latency import _proc_cpu_s, _proc_rss_mb
+from owl_ros.latency import proc_cpu_s, proc_rss_mb
 
 PROG = "owl_soak"
 INPUTS = ("/camera/image_raw", "/camera/camera_info", "/imu/data")
@@ -602,7 +602,7 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
                 )
             if now >= next_sample:
                 run.samples.append(
-                    Sample(now - t0[0], _proc_rss_mb(node_proc.pid), _proc_cpu_s(node_proc.pid))
+                    Sample(now - t0[0], proc_rss_mb(node_proc.pid), proc_cpu_s(node_proc.pid))
                 )
                 next_sample += opts.sample_s
             if not opts.quiet and now >= next_progress:
@@ -610,9 +610,7 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
                 next_progress += 30.0
             time.sleep(max(min(next_sample - time.monotonic(), 0.2), 0.0))
         elapsed = time.monotonic() - t0[0]
-        run.samples.append(
-            Sample(elapsed, _proc_rss_mb(node_proc.pid), _proc_cpu_s(node_proc.pid))
-        )
+        run.samples.append(Sample(elapsed, proc_rss_mb(node_proc.pid), proc_cpu_s(node_proc.pid)))
         if feeder is not None:
             feeder.stop.set()
             feeder.join(timeout=5)
