@@ -365,8 +365,8 @@ def scaled_cloud(res: FrameResult, path: str | Path, title: str = "") -> Path:
         inside = np.all((pts >= lo) & (pts <= hi), axis=1)
     else:
         lo, hi, inside = np.zeros(3), np.ones(3), np.zeros(0, dtype=bool)
-    fig = plt.figure(figsize=(14, 6.2))
-    grid = fig.add_gridspec(1, 2, width_ratios=[1.6, 1])
+    fig = plt.figure(figsize=(11, 6.2), layout="constrained")
+    grid = fig.add_gridspec(1, 2, width_ratios=[2.2, 1])
     ax = fig.add_subplot(grid[0, 0], projection="3d")
     p, c = pts[inside], lv[inside]
     sc = ax.scatter(p[:, 0], p[:, 2], -p[:, 1], c=c, s=6, depthshade=False, **scale)
@@ -412,7 +412,7 @@ def fields(
     px = res.pixels[keep]
     lv = res.looming[keep]
     om = res.omega[keep]
-    fig, axes = plt.subplots(1, 2, figsize=(15, 5.6))
+    fig, axes = plt.subplots(1, 2, figsize=(15, 5.2), layout="constrained")
     axes[0].imshow(image, cmap="gray", alpha=0.55)
     s0 = axes[0].scatter(*px.T, c=lv, s=16, edgecolors="none", **_l_scale(lv))
     fig.colorbar(s0, ax=axes[0], shrink=0.8, label="L (1/s)")
