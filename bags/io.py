@@ -36,10 +36,12 @@ recover=True)`` then reads the complete messages before the damage),
 from __future__ import annotations
 
 import functools
+import mmap
 import os
 import shutil
 import struct
 import tempfile
+import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -259,7 +261,7 @@ class BagReader:
             channels: dict[int, Channel] = {}
             try:
                 with file.open("rb") as f:
-                    for record in StreamReader(f, skip_magic=False).records:
+                    for record in StreamReader(f, skip_magic=False, validate_crcs=True).records:
                         if isinstance(record, Schema):
                             schemas[record.id] = record
                         elif isinstance(record, Channel):
@@ -350,7 +352,9 @@ class BagReader:
 
         Raises:
             BagTopicError: a requested topic is not in the bag (names it).
-            CorruptBagError: a damaged record is met while reading (indexed mode).
+            CorruptBagError: a damaged record (a bad chunk checksum included) is met while
+                reading; with ``recover=True`` reading stops there instead and ``damage``
+                says why.
         """
         wanted = None if topics is None else list(topics)
         if wanted is not None:
@@ -380,6 +384,9 @@ class BagReader:
             for conn, stamp, data in self._reader.messages(connections=conns):
                 yield RawMessage(conn.topic, conn.msgtype, stamp, bytes(data))
         except (ReaderError, OSError, ValueError, KeyError, OverflowError) as err:
+            if self.recover:  # keep what came before, say why it stopped
+                self.damage = _one_line(err)
+                return
             msg = f"truncated or corrupt bag {self.path}: {_one_line(err)}"
             raise CorruptBagError(msg) from None
 
@@ -407,6 +414,52 @@ class BagReader:
         except Exception as err:  # CDR decoding errors have no common base class
             msg = f"cannot deserialize {raw.msgtype} on {raw.topic} at {raw.log_time_ns} ns: "
             raise CorruptBagError(msg + _one_line(err)) from None
+
+
+_OP_CHUNK = 0x06
+_OP_DATA_END = 0x0F
+
+
+def fill_checksums(mcap_path: Path) -> int:
+    """Write the CRC-32 checksums that the rosbags MCAP writer leaves at 0 ("not computed").
+
+    Each uncompressed Chunk record (BagWriter writes no other kind) gets the CRC of its
+    records and the DataEnd record the CRC of the whole data section (the magic up to
+    DataEnd), as the MCAP specification defines them; readers (rosbags, ``mcap`` with
+    ``validate_crcs``) then detect bytes changed inside a message, not only damaged
+    structure. Edits the 4-byte fields in place; the file's size and layout do not change.
+
+    Args:
+        mcap_path: a complete MCAP file (magic, records, DataEnd, summary, footer, magic).
+
+    Returns:
+        The number of chunks given a checksum.
+
+    Raises:
+        CorruptBagError: a record runs past the end of the file.
+    """
+    chunks = 0
+    with mcap_path.open("r+b") as f, mmap.mmap(f.fileno(), 0) as m, memoryview(m) as view:
+        pos, end = len(MCAP_MAGIC), len(view) - len(MCAP_MAGIC)
+        while pos < end:
+            op, length = view[pos], int.from_bytes(view[pos + 1 : pos + 9], "little")
+            body = pos + 9
+            if body + length > end:
+                msg = f"{mcap_path}: record at byte {pos} runs past the end of the file"
+                raise CorruptBagError(msg)
+            if op == _OP_DATA_END:
+                view[body : body + 4] = struct.pack("<I", zlib.crc32(view[:pos]))
+                break
+            if op == _OP_CHUNK:
+                # start u64, end u64, uncompressed size u64, crc u32, compression, records
+                name_len = int.from_bytes(view[body + 28 : body + 32], "little")
+                if name_len == 0:  # uncompressed: BagWriter writes no other kind
+                    size = int.from_bytes(view[body + 32 : body + 40], "little")
+                    crc = zlib.crc32(view[body + 40 : body + 40 + size])
+                    view[body + 24 : body + 28] = struct.pack("<I", crc)
+                    chunks += 1
+            pos = body + length
+    return chunks
 
 
 def _looks_like_bag_dir(path: Path) -> bool:
@@ -527,6 +580,8 @@ class BagWriter:
             writer.set_custom_data(key, value)
         try:
             writer.close()
+            for mcap_file in (self._tmpdir / self.path.name).glob("*.mcap"):
+                fill_checksums(mcap_file)
             if self.path.exists():
                 self._check_target()
                 shutil.rmtree(self.path)

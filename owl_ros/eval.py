@@ -395,8 +395,6 @@ def read_estimates(
     from msg_adapters.stamps import header_to_ns
 
     with BagReader(path, recover=True) as bag:
-        if bag.damage and notes is not None:
-            notes.append(f"result bag damaged, scored what was readable: {bag.damage}")
         topics = bag.topics
         pts_t = _pick(topics, POINTS_TOPICS, points_topic)
         head_t = _pick(topics, HEADING_TOPICS, heading_topic)
@@ -432,6 +430,8 @@ def read_estimates(
                         except ValueError:
                             continue
                         bias_track.append((raw.log_time_ns, b))
+        if bag.damage and notes is not None:  # found on opening or while reading
+            notes.append(f"result bag damaged, scored what was readable: {bag.damage}")
     stamps = sorted(set(clouds) | set(headings))
     bias_t = np.array([t for t, _ in bias_track], dtype=np.int64)
     # Diagnostics are logged on the bag clock (owl_process) or on the recorder's wall clock

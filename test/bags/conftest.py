@@ -13,6 +13,8 @@ from typing import Any
 
 import pytest
 from mcap.reader import make_reader
+from mcap.records import Chunk, DataEnd
+from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
 
@@ -29,14 +31,25 @@ class McapMessage:
 
 
 def read_with_mcap(path: Path) -> list[McapMessage]:
-    """Every message of a rosbag2 directory (its .mcap files) or a bare .mcap, decoded."""
+    """Every message of a rosbag2 directory (its .mcap files) or a bare .mcap, decoded, with
+    every chunk and data-section checksum present and verified."""
     path = Path(path)
     files = sorted(path.glob("*.mcap")) if path.is_dir() else [path]
     assert files, f"no .mcap in {path}"
     out: list[McapMessage] = []
     for file in files:
         with file.open("rb") as f:
-            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            chunks = [
+                r for r in StreamReader(f, emit_chunks=True, validate_crcs=True).records
+                if isinstance(r, Chunk | DataEnd)
+            ]  # fmt: skip
+            # BagWriter fills in the checksums the rosbags writer leaves at 0: all checked
+            assert chunks and all(
+                (r.uncompressed_crc if isinstance(r, Chunk) else r.data_section_crc) != 0
+                for r in chunks
+            ), f"{file}: a chunk or the data section has no checksum"
+            f.seek(0)
+            reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
             for schema, channel, message, decoded in reader.iter_decoded_messages(
                 log_time_order=True
             ):

@@ -204,6 +204,35 @@ def test_truncated_file_is_one_line_error_and_recoverable(tmp_path: Path) -> Non
         assert bag.topics["/tf_static"].qos_kind == "latched"
 
 
+def test_a_byte_changed_inside_a_message_is_detected(tmp_path: Path) -> None:
+    """BagWriter fills in the MCAP chunk checksums (rosbags writes 0, "not computed"), so a
+    flipped bit inside an image's pixels, which leaves the structure intact, is reported
+    instead of being read as a slightly different image; recover mode keeps what is before
+    the damaged chunk, exactly as written."""
+    out = tmp_path / "bag"
+    written = _write_sample(out)
+    mcap = out / "bag.mcap"
+    data = bytearray(mcap.read_bytes())
+    images = [m for m in written if m.topic == "/camera/image_raw"]
+    victim = images[-1].data
+    at = data.find(victim[-4096:])  # inside the pixels of the last image (last chunk)
+    assert at > 0 and data.find(victim[-4096:], at + 1) < 0
+    data[at + 100] ^= 0x10
+    mcap.write_bytes(data)
+    with BagReader(out) as bag:  # the summary is intact
+        assert bag.topics["/camera/image_raw"].count == len(images)
+        with pytest.raises(CorruptBagError) as info:
+            list(bag.messages())
+    text = str(info.value)
+    assert "\n" not in text and str(out) in text and "checksum" in text
+    with BagReader(out, recover=True) as bag:
+        got = list(bag.messages())
+        assert bag.damage is not None and "checksum" in bag.damage
+    assert 0 < len(got) < len(written)
+    assert got == written[: len(got)]
+    assert all(m.data != victim for m in got)
+
+
 def test_recover_reads_an_intact_mcap_without_metadata(tmp_path: Path) -> None:
     out = tmp_path / "bag"
     written = _write_sample(out)

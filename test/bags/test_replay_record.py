@@ -107,7 +107,7 @@ def _in_write_order(path: Path, topic: str) -> list[tuple[int, bytes]]:
     interleave the loops)."""
     (file,) = path.glob("*.mcap")
     with file.open("rb") as f:
-        reader = make_reader(f)
+        reader = make_reader(f, validate_crcs=True)
         return [
             (msg.log_time, bytes(msg.data))
             for _, channel, msg in reader.iter_messages(log_time_order=False)

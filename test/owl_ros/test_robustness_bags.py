@@ -42,6 +42,7 @@ def bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     for name in ("truth", "result"):
         out[f"{name}_cut"] = _damaged(out[name], root / f"{name}_cut", _cut)
         out[f"{name}_tail"] = _damaged(out[name], root / f"{name}_tail", _garbage_tail)
+        out[f"{name}_flip"] = _damaged(out[name], root / f"{name}_flip", _flipped_bit)
     nobag = root / "photos"
     nobag.mkdir()
     (nobag / "notes.txt").write_text("not a bag\n")
@@ -62,6 +63,13 @@ def _cut(data: bytes) -> bytes:
 def _garbage_tail(data: bytes) -> bytes:
     k = len(data) * 2 // 3
     return data[:k] + random.Random(1).randbytes(len(data) - k)
+
+
+def _flipped_bit(data: bytes) -> bytes:
+    """One bit changed at two thirds of the file, inside a message: the structure (record
+    lengths, indexes, summary) stays intact, only the chunk checksum tells."""
+    k = len(data) * 2 // 3
+    return data[:k] + bytes([data[k] ^ 0x10]) + data[k + 1 :]
 
 
 def _damaged(src: Path, dst: Path, how: Callable[[bytes], bytes]) -> Path:
@@ -98,6 +106,7 @@ NOT_A_BAG = [
     ("junk", "junk.mcap"),
     ("truth_cut", "truncated or corrupt"),
     ("truth_tail", "truncated or corrupt"),
+    ("truth_flip", "checksum"),
 ]
 
 
@@ -120,7 +129,7 @@ def test_process_not_a_bag_one_line_no_output(bags, capsys, tmp_path, name, need
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("name", ["truth_cut", "truth_tail"])
+@pytest.mark.parametrize("name", ["truth_cut", "truth_tail", "truth_flip"])
 def test_process_damaged_bag_keeps_the_frames_before_the_damage(bags, capsys, tmp_path, name):
     out = tmp_path / "out"
     assert process.main([str(bags[name]), "-o", str(out), "-q"]) == 1
@@ -150,7 +159,7 @@ def test_eval_result_that_is_no_bag_one_line(bags, capsys, name, needle):
     one_line(capsys, "owl_eval", needle, bags[name].name)
 
 
-@pytest.mark.parametrize("name", ["result_cut", "result_tail"])
+@pytest.mark.parametrize("name", ["result_cut", "result_tail", "result_flip"])
 def test_eval_damaged_result_scores_the_readable_part(bags, capsys, name):
     assert owl_eval.main([str(bags["result"]), "--truth", str(bags["truth"]), "--json"]) == 0
     full = json.loads(capsys.readouterr().out)
