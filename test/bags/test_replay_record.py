@@ -281,7 +281,14 @@ def test_replay_to_record_byte_for_byte_in_order(tmp_path, ros_domain_env):
     )
     _wait_line(rec, "recording to")
     t0 = time.monotonic()
-    rep = _run_cli("bags.replay", str(src), "--wait-for-subscribers", env=ros_domain_env)
+    rep = _run_cli(
+        "bags.replay",
+        str(src),
+        "--wait-for-subscribers",
+        "--start-delay",
+        "0.5",
+        env=ros_domain_env,
+    )
     assert rep.returncode == 0, rep.stderr
     assert "Traceback" not in rep.stderr
     # tf2_msgs has no Python package here: skipped with one warning, not an error
