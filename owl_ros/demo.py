@@ -197,8 +197,6 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
                 "--wait-for-subscribers",
                 "--wait-timeout",
                 "30",
-                "--start-delay",
-                "0.5",
                 "-q",
             ],
             env=env,

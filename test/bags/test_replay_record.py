@@ -19,7 +19,7 @@ from sensor_msgs.msg import Imu
 from bags.io import BagReader, BagWriter, typestore
 from bags.record import RecordError, header_stamp_ns
 from bags.record import parse_options as parse_record
-from bags.replay import ReplayError, split_ros_args
+from bags.replay import MATCH_SETTLE_S, ReplayError, split_ros_args
 from bags.replay import parse_options as parse_replay
 from msg_adapters.image import array_to_image
 from msg_adapters.stamps import make_header
@@ -173,6 +173,12 @@ def test_replay_option_errors(argv, match):
         parse_replay(argv)
 
 
+def test_replay_waits_for_readers_to_settle_after_the_match():
+    assert parse_replay(["b"]).start_delay_s == 0.0
+    assert parse_replay(["b", "--wait-for-subscribers"]).start_delay_s == MATCH_SETTLE_S > 0
+    assert parse_replay(["b", "--wait-for-subscribers", "--start-delay", "0"]).start_delay_s == 0
+
+
 def test_replay_options_normalise_names():
     opts = parse_replay(["bag", "--topics", "imu", "/cam", "--remap", "cam:=/image", "-r", "2"])
     assert opts.topics == ("/imu", "/cam")
@@ -281,14 +287,7 @@ def test_replay_to_record_byte_for_byte_in_order(tmp_path, ros_domain_env):
     )
     _wait_line(rec, "recording to")
     t0 = time.monotonic()
-    rep = _run_cli(
-        "bags.replay",
-        str(src),
-        "--wait-for-subscribers",
-        "--start-delay",
-        "0.5",
-        env=ros_domain_env,
-    )
+    rep = _run_cli("bags.replay", str(src), "--wait-for-subscribers", env=ros_domain_env)
     assert rep.returncode == 0, rep.stderr
     assert "Traceback" not in rep.stderr
     # tf2_msgs has no Python package here: skipped with one warning, not an error

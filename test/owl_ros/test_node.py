@@ -205,10 +205,8 @@ def truth_speeds(bag: Path) -> dict[int, float]:
 def replay(env: dict[str, str], bag: Path, *extra: str) -> None:
     topics = [] if "--topics" in extra else ["--topics", *INPUTS]
     cmd = [sys.executable, "-m", "bags.replay", str(bag), *topics, "-q"]
-    # the publisher side sees the match before the node's best-effort reader has matched
-    # the new writer; what is sent in between is lost (the first 5-6 frames in about one
-    # run in five here), so wait a little longer, as with `ros2 bag play --delay`
-    cmd += ["--wait-for-subscribers", "--wait-timeout", "20", "--start-delay", "0.5", *extra]
+    # --wait-for-subscribers also waits bags.replay.MATCH_SETTLE_S for the node's readers
+    cmd += ["--wait-for-subscribers", "--wait-timeout", "20", *extra]
     run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60, check=False)
     assert run.returncode == 0, run.stderr
 

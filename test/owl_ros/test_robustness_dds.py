@@ -445,7 +445,6 @@ def test_sim_clock_restart_with_a_looping_bag(
     node = tn.start_node(ros_domain_env, "use_sim_time:=true")
     cmd = [sys.executable, "-m", "bags.replay", str(tmp_path / "a"), "--loop", "--clock"]
     cmd += ["--topics", *tn.INPUTS, "--wait-for-subscribers", "--wait-timeout", "20"]
-    cmd += ["--start-delay", "0.5"]  # the node's best-effort readers match a moment later
     replayer = None
     try:
         collector.wait_for_node()
