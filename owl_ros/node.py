@@ -280,22 +280,9 @@ class OwlNode(Node):
                 self.get_logger().error(f"worker: {type(err).__name__}: {err}")
 
     def _step(self) -> None:
-        other, images, dropped = self._inbox.drain()
+        events, dropped = self._inbox.drain()
         pipeline = self._pipeline
-        imus = [(msg, arrival) for kind, msg, arrival in other if kind == "imu"]
-        if imus:  # one batch: the engine's gyro buffer takes them at once
-            pipeline.add_imus([m for m, _ in imus], imus[-1][1])
-        for kind, msg, _arrival in other:
-            if kind == "camera_info":
-                pipeline.add_camera_info(msg)
-            elif kind == "speed":
-                pipeline.add_speed(msg)
-            elif kind == "options":
-                pipeline.reconfigure(msg)
-            elif kind == "qos":
-                pipeline.note_qos_event(msg)
-        for msg, arrival in images:
-            pipeline.add_image(msg, arrival)
+        pipeline.add_events(events)
         pipeline.count_dropped(dropped)
         for out in pipeline.poll(time.monotonic_ns()):
             self._publish(out)

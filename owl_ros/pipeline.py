@@ -36,6 +36,7 @@ points; the reason is in diagnostics) with the input image's header, and an
 from __future__ import annotations
 
 import collections
+import heapq
 import math
 import threading
 from collections.abc import Sequence
@@ -118,14 +119,19 @@ class Inbox:
     Images are kept in a bounded deque (``image_capacity``; the oldest is dropped when
     full and counted in ``dropped_images``); IMU, camera_info and speed messages in deques
     bounded generously (``other_capacity``) so memory stays bounded even if the worker
-    stalls. ``wait`` lets the worker sleep until something arrives.
+    stalls. ``drain`` hands everything over in the order it was put, across kinds: a
+    backwards time jump is then seen after the images taken before it, not before them.
+    ``wait`` lets the worker sleep until something arrives.
     """
 
     def __init__(self, image_capacity: int, other_capacity: int = 20000) -> None:
         self._lock = threading.Lock()
         self._event = threading.Event()
-        self._images: collections.deque[tuple[Any, int]] = collections.deque(maxlen=image_capacity)
-        self._other: collections.deque[tuple[str, Any, int]] = collections.deque(
+        self._seq = 0  # put order across both deques
+        self._images: collections.deque[tuple[int, str, Any, int]] = collections.deque(
+            maxlen=image_capacity
+        )
+        self._other: collections.deque[tuple[int, str, Any, int]] = collections.deque(
             maxlen=other_capacity
         )
         self.dropped_images = 0
@@ -136,15 +142,18 @@ class Inbox:
         with self._lock:
             if len(self._images) == self._images.maxlen:
                 self.dropped_images += 1
-            self._images.append((msg, arrival_ns))
+            self._seq += 1
+            self._images.append((self._seq, "image", msg, arrival_ns))
         self._event.set()
 
     def put(self, kind: str, msg: Any, arrival_ns: int) -> None:
-        """Store a non-image message: kind is "imu", "camera_info", "speed" or "options"."""
+        """Store a non-image message: kind is "imu", "camera_info", "speed", "options" or
+        "qos"."""
         with self._lock:
             if len(self._other) == self._other.maxlen:
                 self.dropped_other += 1
-            self._other.append((kind, msg, arrival_ns))
+            self._seq += 1
+            self._other.append((self._seq, kind, msg, arrival_ns))
         self._event.set()
 
     def wait(self, timeout_s: float) -> None:
@@ -156,16 +165,17 @@ class Inbox:
         """Wake a waiting worker (e.g. to stop it)."""
         self._event.set()
 
-    def drain(self) -> tuple[list[tuple[str, Any, int]], list[tuple[Any, int]], int]:
-        """(other messages in arrival order, images in arrival order, images dropped since
-        the last drain)."""
+    def drain(self) -> tuple[list[tuple[str, Any, int]], int]:
+        """((kind, message, arrival ns) in put order, images being kind "image"; images
+        dropped since the last drain)."""
         with self._lock:
             other = list(self._other)
             images = list(self._images)
             self._other.clear()
             self._images.clear()
             dropped, self.dropped_images = self.dropped_images, 0
-        return other, images, dropped
+        merged = heapq.merge(other, images)  # both are in put order; seq is unique
+        return [(kind, msg, arrival) for _, kind, msg, arrival in merged], dropped
 
 
 def _speed_of(msg: Any) -> tuple[int, float]:
@@ -412,6 +422,31 @@ class Pipeline:
             self._pending.popleft()
             self._count("dropped_queue_full")
         self._pending.append(_Pending(msg, arrival_ns))
+
+    def add_events(self, events: Sequence[tuple[str, Any, int]]) -> None:
+        """Messages in arrival order, as ``(kind, message, arrival ns)`` with kind "image",
+        "imu", "camera_info", "speed", "options" (NodeOptions) or "qos" (text); runs of IMU
+        messages go to the engine in one batch."""
+        imus: list[Any] = []
+        for i, (kind, msg, arrival_ns) in enumerate(events):
+            if kind == "imu":
+                imus.append(msg)
+                if i + 1 < len(events) and events[i + 1][0] == "imu":
+                    continue
+                self.add_imus(imus, arrival_ns)
+                imus = []
+            elif kind == "image":
+                self.add_image(msg, arrival_ns)
+            elif kind == "camera_info":
+                self.add_camera_info(msg)
+            elif kind == "speed":
+                self.add_speed(msg)
+            elif kind == "options":
+                self.reconfigure(msg)
+            elif kind == "qos":
+                self.note_qos_event(msg)
+            else:
+                raise ValueError(f"unknown inbox message kind {kind!r}")
 
     def count_dropped(self, n: int) -> None:
         """Images dropped before they reached the pipeline (the node's inbox was full)."""

@@ -367,10 +367,56 @@ def test_inbox_bounded_newest_wins() -> None:
     for k in range(5):
         inbox.put_image(k, k)
         inbox.put("imu", k, k)
-    other, images, dropped = inbox.drain()
-    assert images == [(3, 3), (4, 4)] and dropped == 3
-    assert [m for _, m, _ in other] == [2, 3, 4] and inbox.dropped_other == 2
-    assert inbox.drain() == ([], [], 0)
+    got, dropped = inbox.drain()
+    assert dropped == 3 and inbox.dropped_other == 2
+    # what is kept comes out in the order it was put, across kinds
+    assert got == [("imu", 2, 2), ("image", 3, 3), ("imu", 3, 3), ("image", 4, 4), ("imu", 4, 4)]
+    assert inbox.drain() == ([], 0)
+
+
+def _inbox_kind(kind: str) -> str:
+    return "camera_info" if kind == "info" else kind
+
+
+def test_bag_loop_seen_late_by_a_busy_worker_resets_once(feed: Feed) -> None:
+    """The worker drains the end of one loop and the start of the next at once (it was busy).
+    The frames of the old loop are dropped by the jump the new loop's IMU reveals, and the
+    new loop's IMU samples are kept: one reset, every new frame covered by the gyro, and
+    the new loop warms up like the first pass. (Handing over all IMU first, then the
+    images, processed an old frame after the reset: a second reset then dropped the new
+    loop's gyro.)"""
+    pipe = Pipeline(options(feed))
+    inbox = Inbox(image_capacity=8)
+    evs = events(feed)
+    cut = [i for i, e in enumerate(evs) if e[1] == "image"]
+    late, resume = cut[-3], len(evs) + cut[3]  # last 3 old frames, first 3 new ones at once
+    loop = [(t, _inbox_kind(k), m) for t, k, m in evs] * 2
+    outs: list[Output] = []
+    i = 0
+    while i < len(loop):
+        j = resume if i == late else i + 1
+        for t, kind, msg in loop[i:j]:
+            inbox.put_image(msg, t) if kind == "image" else inbox.put(kind, msg, t)
+        got, dropped = inbox.drain()
+        pipe.add_events(got)
+        pipe.count_dropped(dropped)
+        outs += pipe.poll(loop[j - 1][0])
+        i = j
+    outs += pipe.poll(loop[-1][0], flush=True)
+    assert pipe.totals["time_jumps"] == 1
+    assert pipe.totals["dropped_time_jump"] >= 1
+    assert pipe.totals["frames_imu_not_covered"] == 0
+    stamps = [header_to_ns(o.header) for o in outs]
+    back = next(k for k in range(1, len(outs)) if stamps[k] < stamps[k - 1])
+    first, second = outs[:back], outs[back:]
+    assert all(o.result.num_points > 0 for o in first[5:])
+    # the batch held 3 new frames for a queue of 2: the first new frame gave way
+    assert stamps[back:] == [header_to_ns(img.header) for img in feed.images[1:]]
+    # no stale tracks: the new loop warms up like the first, then every frame has points
+    warm = [o.result.num_points > 0 for o in first].index(True)
+    assert [o.result.num_points > 0 for o in second] == [False] * warm + [True] * (
+        len(second) - warm
+    )
 
 
 # ----------------------------------------------------------------------------- speed, debug
@@ -528,19 +574,14 @@ def test_imu_batches_equal_single_messages(feed: Feed) -> None:
     outs_single = run(single, events(feed, imus=imus))
     batched = Pipeline(options(feed))
     outs_batched: list[Output] = []
-    pending: list[Any] = []
+    batch: list[tuple[str, Any, int]] = []
     for now, kind, msg in events(feed, imus=imus):
-        if kind == "imu":
-            pending.append(msg)
-            continue
-        batched.add_imus(pending, now)
-        pending = []
-        if kind == "info":
-            batched.add_camera_info(msg)
-        else:
-            batched.add_image(msg, now)
-        outs_batched += batched.poll(now)
-    batched.add_imus(pending, now)
+        batch.append((_inbox_kind(kind), msg, now))
+        if kind != "imu":  # the worker wakes for each image: what came before, in one go
+            batched.add_events(batch)
+            batch = []
+            outs_batched += batched.poll(now)
+    batched.add_events(batch)
     outs_batched += batched.poll(now, flush=True)
     assert [bytes(o.cloud.data) for o in outs_batched] == [
         bytes(o.cloud.data) for o in outs_single
