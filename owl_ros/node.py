@@ -199,6 +199,8 @@ class OwlNode(Node):
             for info in self.get_publishers_info_by_topic(sub.topic_name):
                 if info.topic_type != expected:
                     who = f"{info.node_namespace.rstrip('/')}/{info.node_name}"
+                    if info.node_name == "_NODE_NAME_UNKNOWN_":  # not discovered yet
+                        who = "(node not known yet)"
                     found.append(
                         f"{sub.topic_name}: publisher {who} offers type {info.topic_type}, "
                         f"subscribed as {expected}"

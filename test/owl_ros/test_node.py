@@ -37,7 +37,12 @@ from owl_ros.process import ProcessOptions, Summary, process_bag
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
-SECONDS = 1.5
+SECONDS = 2.0
+# A 20 Hz camera: the engine costs about 25 ms per 320x240 frame on a slow CI core (one
+# thread), and the replayer and the test's subscriber share the 2 cores with the node, so
+# at 30 Hz the node ran at the edge and dropped frames whenever the machine was busy. These
+# tests check behaviour at real rate; throughput and latency limits are owl_latency's.
+RATE_HZ = 20
 WARMUP_FRAMES = 10  # tracks need 5 frames; the first frames also pay for lazy imports
 INPUTS = ("/camera/image_raw", "/camera/camera_info", "/imu/data")
 REMAPS = ("image:=/camera/image_raw", "camera_info:=/camera/camera_info", "imu:=/imu/data")
@@ -53,7 +58,8 @@ QUEUE = "queue_size:=8"
 @pytest.fixture(scope="module")
 def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("node") / "street"
-    args = ["street", str(out), "--seconds", str(SECONDS), "--width", "320", "--height", "240"]
+    args = ["street", str(out), "--seconds", str(SECONDS), "--rate", str(RATE_HZ)]
+    args += ["--width", "320", "--height", "240"]
     assert make_bag.main([*args, "--quiet", "--seed", "7"]) == 0
     return out
 
@@ -235,7 +241,12 @@ def check_clouds(
     why = ""
     if diagnostics is not None and diagnostics.diagnostics:
         why = " ".join(f"{s}: {diagnostics.status(s)}" for s in ("processing", "gyro", "input"))
-    assert len(full) >= 0.9 * len(after), f"{len(full)} of {len(after)} gave points; {why}"
+    missing = [i for i, t in enumerate(stamps) if t not in by_stamp]
+    empty = [i for i, t in enumerate(stamps) if t in by_stamp and by_stamp[t].width == 0]
+    assert len(full) >= 0.9 * len(after), (
+        f"{len(full)} of {len(after)} gave points (frames without a cloud: {missing}, "
+        f"with an empty one: {empty}); {why}"
+    )
     for c in clouds:
         assert c.header.frame_id == "camera_optical_frame"
         assert [f.name for f in c.fields] == [name for name, _, _ in OWL_FIELDS]
@@ -414,7 +425,8 @@ def test_runtime_parameters_qos_events_and_time_jump(
 def test_overload_newest_frame_wins_latency_bounded(
     ros_domain_env: dict[str, str], collector: Collector, bag: Path, frame_stamps: list[int]
 ) -> None:
-    """Input at 3x real rate with the default queue: drops counted, latency bounded."""
+    """Input at 5x real rate (100 Hz) with the default queue: drops counted, latency
+    bounded."""
     debug: list[Any] = []
     collector.node.create_subscription(
         Image, "/owl/debug_image", debug.append, QoSProfile(depth=5)
@@ -432,7 +444,7 @@ def test_overload_newest_frame_wins_latency_bounded(
     )
     try:
         collector.wait_for_node()
-        replay(ros_domain_env, bag, "--rate", "3")
+        replay(ros_domain_env, bag, "--rate", "5")
         collector.wait_settled(1)
     finally:
         code, err = stop_node(node)
