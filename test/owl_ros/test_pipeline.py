@@ -80,20 +80,17 @@ def events(
     return sorted(out, key=lambda e: (e[0], order[e[1]]))
 
 
+def _inbox_kind(kind: str) -> str:
+    return "camera_info" if kind == "info" else kind
+
+
 def run(
     pipeline: Pipeline, evs: Iterable[tuple[int, str, Any]], flush: bool = True
 ) -> list[Output]:
     outs: list[Output] = []
     now = 0
     for now, kind, msg in evs:
-        if kind == "imu":
-            pipeline.add_imu(msg, now)
-        elif kind == "info":
-            pipeline.add_camera_info(msg)
-        elif kind == "speed":
-            pipeline.add_speed(msg)
-        else:
-            pipeline.add_image(msg, now)
+        pipeline.add_events([(_inbox_kind(kind), msg, now)])
         outs += pipeline.poll(now)
     if flush:
         outs += pipeline.poll(now, flush=True)
@@ -372,10 +369,6 @@ def test_inbox_bounded_newest_wins() -> None:
     # what is kept comes out in the order it was put, across kinds
     assert got == [("imu", 2, 2), ("image", 3, 3), ("imu", 3, 3), ("image", 4, 4), ("imu", 4, 4)]
     assert inbox.drain() == ([], 0)
-
-
-def _inbox_kind(kind: str) -> str:
-    return "camera_info" if kind == "info" else kind
 
 
 def test_bag_loop_seen_late_by_a_busy_worker_resets_once(feed: Feed) -> None:
