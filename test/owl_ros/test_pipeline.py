@@ -73,15 +73,11 @@ def events(
         t = header_to_ns(img.header)
         out.append((t, "image", img))
         if info is not None:
-            out.append((t, "info", feed.info if info == "default" else info))
+            out.append((t, "camera_info", feed.info if info == "default" else info))
     for imu in feed.imus if imus is None else imus:
         out.append((header_to_ns(imu.header), "imu", imu))
-    order = {"imu": 0, "image": 1, "info": 2}
+    order = {"imu": 0, "image": 1, "camera_info": 2}
     return sorted(out, key=lambda e: (e[0], order[e[1]]))
-
-
-def _inbox_kind(kind: str) -> str:
-    return "camera_info" if kind == "info" else kind
 
 
 def run(
@@ -90,7 +86,7 @@ def run(
     outs: list[Output] = []
     now = 0
     for now, kind, msg in evs:
-        pipeline.add_events([(_inbox_kind(kind), msg, now)])
+        pipeline.add_events([(kind, msg, now)])
         outs += pipeline.poll(now)
     if flush:
         outs += pipeline.poll(now, flush=True)
@@ -383,7 +379,7 @@ def test_bag_loop_seen_late_by_a_busy_worker_resets_once(feed: Feed) -> None:
     evs = events(feed)
     cut = [i for i, e in enumerate(evs) if e[1] == "image"]
     late, resume = cut[-3], len(evs) + cut[3]  # last 3 old frames, first 3 new ones at once
-    loop = [(t, _inbox_kind(k), m) for t, k, m in evs] * 2
+    loop = evs * 2
     outs: list[Output] = []
     i = 0
     while i < len(loop):
@@ -535,20 +531,13 @@ def test_imu_publisher_disappears_and_comes_back(feed: Feed) -> None:
     pipe = Pipeline(options(feed))
     outs = []
     for now, kind, msg in evs:
-        if kind == "imu":
-            pipe.add_imu(msg, now)
-        elif kind == "info":
-            pipe.add_camera_info(msg)
-        else:
-            pipe.add_image(msg, now)
-            if header_to_ns(msg.header) in stamps[8:11]:
-                # IMU silent for > 1 s: processed at once, not after imu_wait_s
-                got = pipe.poll(now)
-                assert [o.header for o in got][-1:] == [msg.header]
-                assert any("IMU does not cover" in r for r in got[-1].result.reasons)
-                outs += got
-                continue
-        outs += pipe.poll(now)
+        pipe.add_events([(kind, msg, now)])
+        got = pipe.poll(now)
+        if kind == "image" and header_to_ns(msg.header) in stamps[8:11]:
+            # IMU silent for > 1 s: processed at once, not after imu_wait_s
+            assert [o.header for o in got][-1:] == [msg.header]
+            assert any("IMU does not cover" in r for r in got[-1].result.reasons)
+        outs += got
     outs += pipe.poll(evs[-1][0], flush=True)
     assert len(outs) == len(stamps)
     assert outs[-1].result.num_points > 0  # recovered
@@ -569,7 +558,7 @@ def test_imu_batches_equal_single_messages(feed: Feed) -> None:
     outs_batched: list[Output] = []
     batch: list[tuple[str, Any, int]] = []
     for now, kind, msg in events(feed, imus=imus):
-        batch.append((_inbox_kind(kind), msg, now))
+        batch.append((kind, msg, now))
         if kind != "imu":  # the worker wakes for each image: what came before, in one go
             batched.add_events(batch)
             batch = []
