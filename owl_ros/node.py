@@ -32,6 +32,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -62,6 +63,8 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 SPIN_TIMEOUT_S = 0.1
 #: longest worker sleep between checks, s.
 WORKER_TICK_S = 0.05
+#: at shutdown, how long to wait for subscribers to acknowledge the last outputs, s.
+FLUSH_TIMEOUT_S = 1.0
 
 
 def _sensor_qos(depth: int) -> QoSProfile:
@@ -309,11 +312,23 @@ class OwlNode(Node):
         self._diag_pub.publish(records_to_msg(records, max(stamp, 0)))
 
     def close(self) -> None:
-        """Stop the worker thread (call before destroy_node)."""
+        """Stop the worker thread, then give the reliable subscribers up to
+        ``FLUSH_TIMEOUT_S`` to acknowledge the last outputs (a sample lost on the way is
+        otherwise repaired only at the next DDS heartbeat, after the node has gone). Call
+        before destroy_node."""
         self._stop.set()
         self._inbox.wake()
         if self._worker.is_alive():
             self._worker.join(timeout=5.0)
+        deadline = time.monotonic() + FLUSH_TIMEOUT_S
+        for pub in (self._points_pub, self._heading_pub, self._debug_pub, self._diag_pub):
+            left = deadline - time.monotonic()
+            if pub is not None and left > 0 and pub.get_subscription_count() > 0:
+                if not pub.wait_for_all_acked(Duration(nanoseconds=round(left * 1e9))):
+                    self.get_logger().warning(
+                        f"{pub.topic_name}: not every subscriber acknowledged the last "
+                        f"message within {FLUSH_TIMEOUT_S} s of shutdown"
+                    )
 
 
 def _help() -> str:

@@ -85,17 +85,20 @@ class Collector:
         self.clouds: list[Any] = []
         self.headings: list[Any] = []
         self.diagnostics: list[Any] = []
+        self._diagnostics_at = 0.0  # time.monotonic() of the newest diagnostics
         qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
         self.node.create_subscription(PointCloud2, "/owl/points", self.clouds.append, qos)
         self.node.create_subscription(Vector3Stamped, "/owl/heading", self.headings.append, qos)
-        self.node.create_subscription(
-            DiagnosticArray, "/diagnostics", self.diagnostics.append, qos
-        )
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, qos)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._stop = False
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        self.diagnostics.append(msg)
+        self._diagnostics_at = time.monotonic()
 
     def _spin(self) -> None:
         while not self._stop and self.context.ok():
@@ -109,7 +112,10 @@ class Collector:
             time.sleep(0.05)
 
     def wait_settled(self, count: int, timeout: float = 15.0, quiet_s: float = 1.0) -> None:
-        """Until at least ``count`` clouds arrived and none for ``quiet_s`` (node done)."""
+        """Until at least ``count`` clouds arrived, none for ``quiet_s``, and the node's
+        diagnostics sent after the last cloud count no more processed frames than clouds
+        arrived (a reliable sample lost on the way is resent only at the next DDS
+        heartbeat, seconds later: quiet alone does not mean delivered)."""
         deadline = time.monotonic() + timeout
         seen, since = -1, time.monotonic()
         while time.monotonic() < deadline:
@@ -117,9 +123,21 @@ class Collector:
             if n != seen:
                 seen, since = n, time.monotonic()
             elif n >= count and time.monotonic() - since >= quiet_s:
-                return
+                if self._diagnostics_at > since and self.processed() <= n:
+                    return
             time.sleep(0.05)
-        raise AssertionError(f"timed out: {len(self.clouds)} clouds, expected >= {count}")
+        raise AssertionError(
+            f"timed out: {len(self.clouds)} clouds, expected >= {count}; the node's newest "
+            f"diagnostics count {self.processed()} processed frames"
+        )
+
+    def processed(self) -> int:
+        """frames_processed_total of the newest ``owl: processing`` status (-1 if none)."""
+        if not self.diagnostics:
+            return -1
+        _, records = msg_to_records(self.diagnostics[-1])
+        rec = next((r for r in records if r.name == "owl: processing"), None)
+        return -1 if rec is None else int(rec.value_map()["frames_processed_total"])
 
     def wait_for_node(self, timeout: float = 20.0) -> None:
         """Until the node's publications and this node's subscriptions have matched."""
