@@ -263,17 +263,20 @@ class OwlNode(Node):
         diag_period_ns = round(self.options.diagnostics_period_s * 1e9)
         next_diag = time.monotonic_ns() + diag_period_ns
         self._pipeline.start_window(time.monotonic_ns())
+        busy = False  # a frame was taken last step: more may be ready, do not sleep
         while not self._stop.is_set():
             now = time.monotonic_ns()
             deadline = self._pipeline.next_deadline_ns()
             timeout = WORKER_TICK_S
             if deadline is not None:
                 timeout = min(timeout, max((deadline - now) * 1e-9, 0.001))
-            self._inbox.wait(min(timeout, max((next_diag - now) * 1e-9, 0.001)))
+            if not busy:
+                self._inbox.wait(min(timeout, max((next_diag - now) * 1e-9, 0.001)))
             if self._stop.is_set():
                 break
             try:
-                self._step()
+                busy = False
+                busy = self._step()
                 now = time.monotonic_ns()
                 if now >= next_diag:
                     diag_period_ns = round(self.options.diagnostics_period_s * 1e9)
@@ -284,13 +287,23 @@ class OwlNode(Node):
                     break
                 self.get_logger().error(f"worker: {type(err).__name__}: {err}")
 
-    def _step(self) -> None:
+    def _step(self) -> bool:
+        """Hand over what arrived, then process at most one frame and publish its outputs
+        at once (a newer frame arriving meanwhile is seen before the next one is taken).
+        Returns whether a frame was taken from the queue."""
         events, dropped = self._inbox.drain()
         pipeline = self._pipeline
         pipeline.add_events(events)
         pipeline.count_dropped(dropped)
-        for out in pipeline.poll(time.monotonic_ns()):
+        before = pipeline.pending_count
+        start = time.monotonic_ns()
+        outs = pipeline.poll(start, limit=1)
+        for out in outs:
             self._publish(out)
+        taken = pipeline.pending_count < before
+        if taken and outs:
+            pipeline.record_cycle((time.monotonic_ns() - start) * 1e-9)
+        return taken
 
     def _publish(self, out: Output) -> None:
         self._points_pub.publish(out.cloud)
@@ -313,9 +326,8 @@ class OwlNode(Node):
 
     def close(self) -> None:
         """Stop the worker thread, then give the reliable subscribers up to
-        ``FLUSH_TIMEOUT_S`` to acknowledge the last outputs (a sample lost on the way is
-        otherwise repaired only at the next DDS heartbeat, after the node has gone). Call
-        before destroy_node."""
+        ``FLUSH_TIMEOUT_S`` to acknowledge the last outputs, so that the last cloud of a
+        replay, still in flight, is not lost with the writers. Call before destroy_node."""
         self._stop.set()
         self._inbox.wake()
         if self._worker.is_alive():

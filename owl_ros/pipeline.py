@@ -109,6 +109,7 @@ class _Window:
     counts: collections.Counter[str] = field(default_factory=collections.Counter)
     process_s: list[float] = field(default_factory=list)
     latency_s: list[float] = field(default_factory=list)
+    cycle_s: list[float] = field(default_factory=list)
     stamp_latency_s: list[float] = field(default_factory=list)
     points: list[int] = field(default_factory=list)
 
@@ -203,6 +204,7 @@ class Pipeline:
         self._camera_key: tuple[Any, ...] | None = None
         self._camera_error: str | None = None
         self._pending: collections.deque[_Pending] = collections.deque()
+        self._ready: list[Output] = []  # processed outside poll (before a time jump)
         self._ring: collections.deque[tuple[int, tuple[float, float, float]]] = collections.deque()
         self._newest_imu_ns: int | None = None
         self._imu_arrival_ns: int | None = None
@@ -262,25 +264,30 @@ class Pipeline:
             self._pending.popleft()
             self._count("dropped_queue_full")
 
-    def _time_jump(self, what: str, stale_after_ns: int | None = None) -> None:
-        """Backwards time jump: reset everything that holds time; queued frames stamped
-        after ``stale_after_ns`` (from before the jump) are dropped."""
+    def _time_jump(self, what: str) -> None:
+        """Backwards time jump: reset everything that holds time."""
         self._last_jump = what
         self._count("time_jumps")
         self._ring.clear()
         self._newest_imu_ns = None
         self._last_stamp = None
         self._speeds.clear()
-        if stale_after_ns is not None:
-            keep = collections.deque(
-                p for p in self._pending if self._stamp_or_zero(p.msg) <= stale_after_ns
-            )
-            dropped = len(self._pending) - len(keep)
-            if dropped:
-                self._count("dropped_time_jump", dropped)
-            self._pending = keep
         if self._engine is not None:
             self._engine.reset()
+
+    def _process_before_jump(self, after_ns: int, now_ns: int) -> None:
+        """The IMU jumped back: queued frames stamped after ``after_ns`` are from before the
+        jump, and all their IMU arrived before it. Process them now, while the engine still
+        has that timeline; their outputs wait in ``_ready`` for the next :meth:`poll`."""
+        old: collections.deque[_Pending] = collections.deque()
+        rest: collections.deque[_Pending] = collections.deque()
+        for p in self._pending:
+            (old if self._stamp_or_zero(p.msg) > after_ns else rest).append(p)
+        if not old:
+            return
+        self._pending = old
+        self._ready = self.poll(now_ns, flush=True)  # (with what was ready already)
+        self._pending = rest
 
     def note_qos_event(self, text: str) -> None:
         """Record a QoS problem (e.g. an incompatible publisher/subscriber) for diagnostics."""
@@ -366,10 +373,10 @@ class Pipeline:
                     )
                     continue
                 self._feed(stamps, rates, keep)
+                self._process_before_jump(stamp + jump_ns, arrival_ns)
                 self._time_jump(
                     f"IMU stamp went back {(newest - stamp) * 1e-9:.3f} s ({stamp} ns after "
-                    f"{newest} ns): engine reset",
-                    stale_after_ns=stamp + jump_ns,
+                    f"{newest} ns): engine reset"
                 )
             elif newest is not None and stamp - newest > self.options.imu_max_gap_s * 1e9:
                 # never interpolate across a gap: frames spanning it are not covered
@@ -460,27 +467,37 @@ class Pipeline:
     def _imu_live(self, now_ns: int) -> bool:
         return self._imu_arrival_ns is not None and now_ns - self._imu_arrival_ns < IMU_SILENT_NS
 
-    def poll(self, now_ns: int, flush: bool = False) -> list[Output]:
-        """Process every queued frame that is ready (see the module docstring).
+    @property
+    def pending_count(self) -> int:
+        """Frames queued, not yet processed."""
+        return len(self._pending)
+
+    def poll(self, now_ns: int, flush: bool = False, limit: int | None = None) -> list[Output]:
+        """Process the queued frames that are ready (see the module docstring).
 
         Args:
             now_ns: the caller's current time, on the clock of ``arrival_ns``, ns.
             flush: process every queued frame now (end of a bag, shutdown).
+            limit: take at most this many frames from the queue (processed or skipped);
+                None: all that are ready.
 
         Returns:
-            One Output per processed frame, in order.
+            One Output per processed frame, in order (first any processed before a time
+            jump since the last call).
         """
-        outs: list[Output] = []
+        outs, self._ready = self._ready, []
         if self._window.start_ns is None:
             self._window.start_ns = now_ns
         wait_ns = round(self.options.imu_wait_s * 1e9)
-        while self._pending:
+        taken = 0
+        while self._pending and (limit is None or taken < limit):
             item = self._pending[0]
             engine = self._engine
             if engine is None:
                 if not flush and self._camera_error is None and now_ns - item.arrival_ns < wait_ns:
                     break  # camera_info may be just behind its image
                 self._pending.popleft()
+                taken += 1
                 if self._camera_error is not None:
                     self._skip("no_camera_info", f"no valid camera_info: {self._camera_error}")
                 else:
@@ -489,6 +506,7 @@ class Pipeline:
             stamp = self._stamp_of(item.msg)
             if stamp is None:
                 self._pending.popleft()
+                taken += 1
                 continue
             covered = engine.covers(stamp)
             if not covered and not flush:
@@ -500,6 +518,7 @@ class Pipeline:
                 if waiting and not passed and not full and self._imu_live(now_ns):
                     break
             self._pending.popleft()
+            taken += 1
             out = self._process(item, stamp, covered)
             if out is not None:
                 outs.append(out)
@@ -613,6 +632,11 @@ class Pipeline:
         self._window.latency_s.append(float(latency_s))
         if stamp_latency_s is not None:
             self._window.stamp_latency_s.append(float(stamp_latency_s))
+
+    def record_cycle(self, cycle_s: float) -> None:
+        """Record the worker's time for one frame, seconds: taken from the queue to its
+        outputs published (conversion, engine, messages, publishing)."""
+        self._window.cycle_s.append(float(cycle_s))
 
     # ------------------------------------------------------------------ diagnostics
 
@@ -732,12 +756,12 @@ class Pipeline:
                 if win.process_s
                 else math.nan,
                 "processing_ms_max": 1e3 * max(win.process_s) if win.process_s else math.nan,
+                "frame_cycle_ms_max": 1e3 * max(win.cycle_s) if win.cycle_s else math.nan,
                 "latency_ms_p50": 1e3 * _percentile(win.latency_s, 50),
                 "latency_ms_p95": 1e3 * _percentile(win.latency_s, 95),
                 "stamp_to_publish_ms_p50": 1e3 * _percentile(win.stamp_latency_s, 50),
                 "stamp_to_publish_ms_p95": 1e3 * _percentile(win.stamp_latency_s, 95),
                 "dropped_queue_full_total": t["dropped_queue_full"],
-                "dropped_time_jump_total": t["dropped_time_jump"],
                 "skipped_no_camera_info_total": t["skipped_no_camera_info"],
                 "skipped_bad_image_total": t["skipped_bad_image"],
                 "skipped_duplicate_stamp_total": t["skipped_duplicate_stamp"],
