@@ -143,6 +143,7 @@ class Window:
     latency_ms_p95: float
     processing_ms_max: float = math.nan
     images_total: int = 0
+    frame_cycle_ms_max: float = math.nan
 
 
 @dataclass
@@ -189,6 +190,10 @@ def _segment(run: _Run, t0: float, t1: float) -> dict[str, float]:
         "processing_ms_p10": float(np.percentile(proc, 10)) if proc else math.nan,
         "processing_ms_max": max(
             (w.processing_ms_max for w in wins if math.isfinite(w.processing_ms_max)),
+            default=math.nan,
+        ),
+        "frame_cycle_ms_max": max(
+            (w.frame_cycle_ms_max for w in wins if math.isfinite(w.frame_cycle_ms_max)),
             default=math.nan,
         ),
         "cpu_ms_per_frame": 1e3 * (cpu(t1) - cpu(t0)) / n if n > 0 else math.nan,
@@ -467,6 +472,7 @@ def _parse_window(values: dict[str, str], t_s: float, images: int) -> Window:
         f("latency_ms_p95"),
         f("processing_ms_max"),
         images,
+        f("frame_cycle_ms_max"),
     )
 
 

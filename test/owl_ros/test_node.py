@@ -53,6 +53,9 @@ ROTATION = "camera_to_imu_rotation_xyzw:=[-0.5,0.5,-0.5,0.5]"
 # lets the node ride out moments of CPU starvation, so these tests check that it keeps up
 # on average at real rate (throughput); latency is measured by owl_ros.latency.
 QUEUE = "queue_size:=8"
+# Longer than Fast DDS's default heartbeat period (3 s), after which a writer resends a
+# reliable sample its reader missed.
+REPAIR_S = 4.0
 
 
 @pytest.fixture(scope="module")
@@ -112,18 +115,19 @@ class Collector:
             time.sleep(0.05)
 
     def wait_settled(self, count: int, timeout: float = 15.0, quiet_s: float = 1.0) -> None:
-        """Until at least ``count`` clouds arrived, none for ``quiet_s``, and the node's
-        diagnostics sent after the last cloud count no more processed frames than clouds
-        arrived (a reliable sample lost on the way is resent only at the next DDS
-        heartbeat, seconds later: quiet alone does not mean delivered)."""
+        """Until at least ``count`` clouds arrived, none for ``quiet_s``, a diagnostics
+        message came after the last cloud, and either it counts no more processed frames
+        than clouds arrived or ``REPAIR_S`` more have passed (a reliable sample lost on the
+        way is resent at the next DDS heartbeat: quiet alone does not mean delivered)."""
         deadline = time.monotonic() + timeout
         seen, since = -1, time.monotonic()
         while time.monotonic() < deadline:
             n = len(self.clouds)
+            quiet = time.monotonic() - since
             if n != seen:
                 seen, since = n, time.monotonic()
-            elif n >= count and time.monotonic() - since >= quiet_s:
-                if self._diagnostics_at > since and self.processed() <= n:
+            elif n >= count and quiet >= quiet_s and self._diagnostics_at > since:
+                if self.processed() <= n or quiet >= quiet_s + REPAIR_S:
                     return
             time.sleep(0.05)
         raise AssertionError(
@@ -133,11 +137,19 @@ class Collector:
 
     def processed(self) -> int:
         """frames_processed_total of the newest ``owl: processing`` status (-1 if none)."""
+        return self._processing_count("frames_processed_total")
+
+    def dropped(self) -> int:
+        """dropped_queue_full_total of the newest ``owl: processing`` status (0 if none):
+        frames the node dropped for a newer one. Current after ``wait_settled``."""
+        return max(self._processing_count("dropped_queue_full_total"), 0)
+
+    def _processing_count(self, key: str) -> int:
         if not self.diagnostics:
             return -1
         _, records = msg_to_records(self.diagnostics[-1])
         rec = next((r for r in records if r.name == "owl: processing"), None)
-        return -1 if rec is None else int(rec.value_map()["frames_processed_total"])
+        return -1 if rec is None else int(rec.value_map()[key])
 
     def wait_for_node(self, timeout: float = 20.0) -> None:
         """Until the node's publications and this node's subscriptions have matched."""
@@ -249,9 +261,11 @@ def stop_node(proc: subprocess.Popen[str]) -> tuple[int, str]:
 
 
 def check_clouds(
-    clouds: Sequence[Any], stamps: list[int], diagnostics: Any = None
+    clouds: Sequence[Any], stamps: list[int], diagnostics: Any = None, dropped: int = 0
 ) -> dict[int, Any]:
-    """Contract checks; returns stamp -> cloud; asserts >= 90 % after warm-up have points."""
+    """Contract checks; returns stamp -> cloud. Of the frames after warm-up that the node
+    did not drop for a newer one (``dropped``, its own count: newest wins when the machine
+    is busy), >= 90 % gave points, and at least half of all of them did."""
     by_stamp = {header_to_ns(c.header): c for c in clouds}
     assert set(by_stamp) <= set(stamps)  # headers are the images' headers
     after = stamps[WARMUP_FRAMES:]
@@ -261,9 +275,10 @@ def check_clouds(
         why = " ".join(f"{s}: {diagnostics.status(s)}" for s in ("processing", "gyro", "input"))
     missing = [i for i, t in enumerate(stamps) if t not in by_stamp]
     empty = [i for i, t in enumerate(stamps) if t in by_stamp and by_stamp[t].width == 0]
-    assert len(full) >= 0.9 * len(after), (
-        f"{len(full)} of {len(after)} gave points (frames without a cloud: {missing}, "
-        f"with an empty one: {empty}); {why}"
+    kept = len(after) - dropped
+    assert len(full) >= max(0.9 * kept, 0.5 * len(after)), (
+        f"{len(full)} of {len(after)} gave points, {dropped} dropped for a newer frame "
+        f"(frames without a cloud: {missing}, with an empty one: {empty}); {why}"
     )
     for c in clouds:
         assert c.header.frame_id == "camera_optical_frame"
@@ -314,10 +329,13 @@ def test_replay_at_real_rate(
         code, err = stop_node(node)
     assert code == 0, err
     assert "Traceback" not in err
-    check_clouds(collector.clouds, frame_stamps, collector)
-    assert check_headings(collector.headings, reference) >= 0.9 * len(reference.headings)
+    dropped = collector.dropped()
+    check_clouds(collector.clouds, frame_stamps, collector, dropped)
+    compared = check_headings(collector.headings, reference)
+    assert compared >= 0.9 * (len(reference.headings) - dropped), (compared, dropped)
     _, _, values = collector.status("processing")
-    assert int(values["frames_processed_total"]) >= 0.9 * len(frame_stamps)
+    # every frame accounted for: processed, or dropped for a newer one (counted)
+    assert int(values["frames_processed_total"]) + dropped >= 0.9 * len(frame_stamps)
     assert float(values["latency_ms_p50"]) > 0 or values["latency_ms_p50"] == "nan"
 
 
@@ -342,7 +360,7 @@ def test_replay_with_sim_time_and_clock(
     finally:
         code, err = stop_node(node)
     assert code == 0, err
-    by_stamp = check_clouds(collector.clouds, frame_stamps, collector)
+    by_stamp = check_clouds(collector.clouds, frame_stamps, collector, collector.dropped())
     assert check_headings(collector.headings, reference) >= 0.9 * len(reference.headings)
     speeds = truth_speeds(bag)
     metric = [c for c in by_stamp.values() if c.width > 0]
@@ -425,13 +443,15 @@ def test_runtime_parameters_qos_events_and_time_jump(
         # the input publisher goes away and comes back with the same (earlier) stamps
         replay(ros_domain_env, bag)
         collector.wait_settled(1)
-        first = len(collector.clouds)
+        first, dropped = len(collector.clouds), collector.dropped()
         replay(ros_domain_env, bag)
         collector.wait_settled(first + 1)
+        dropped = collector.dropped() - dropped
     finally:
         code, err = stop_node(node)
     assert code == 0, err
-    check_clouds(collector.clouds[first:], frame_stamps, collector)  # recovered without a restart
+    # recovered without a restart
+    check_clouds(collector.clouds[first:], frame_stamps, collector, dropped)
     _, _, proc = collector.status("processing")
     assert int(proc["time_jumps_total"]) >= 1
     assert "engine reset" in proc["last_time_jump"]
@@ -472,13 +492,21 @@ def test_overload_newest_frame_wins_latency_bounded(
     _, _, proc = collector.status("processing")
     dropped = int(proc["dropped_queue_full_total"])
     assert dropped > 0 and len(stamps) + dropped <= len(frame_stamps)
-    # newest wins: a frame waits for at most queue_size (2) frames ahead of it
-    windows = [msg_to_records(d)[1] for d in collector.diagnostics]
-    for records in windows:
-        values = next(r for r in records if r.name == "owl: processing").value_map()
-        p95, slowest = float(values["latency_ms_p95"]), float(values["processing_ms_max"])
+    # newest wins: a frame waits for the rest of the worker's current frame, then at most
+    # queue_size - 1 (1) frames ahead of it, then its own: 3 worker cycles (conversion,
+    # engine, messages, publishing), and one more plus 50 ms for handing over IMU batches
+    # between cycles. A frame's wait may span two diagnostics windows: the slowest cycle
+    # of the run bounds it.
+    windows = [
+        next(r for r in msg_to_records(d)[1] if r.name == "owl: processing").value_map()
+        for d in collector.diagnostics
+    ]
+    cycles = [float(v["frame_cycle_ms_max"]) for v in windows]
+    slowest = max(c for c in cycles if not math.isnan(c))
+    for values in windows:
+        p95 = float(values["latency_ms_p95"])
         if not math.isnan(p95):
-            assert p95 <= 4 * slowest + 50, values  # (queue 2 + current + 1) frames
+            assert p95 <= 4 * slowest + 50, (slowest, values)
     # the debug image was built while subscribed: header of its frame, tracks drawn
     assert debug and debug[-1].encoding == "bgr8"
     assert header_to_ns(debug[-1].header) in set(stamps)

@@ -104,13 +104,6 @@ def wait_for_diag(collector: Any, since: int, what: Any, why: str, timeout: floa
     raise AssertionError(f"no diagnostics with {why}; last: {last}")
 
 
-def dropped_total(collector: Any) -> int:
-    """The node's count of frames dropped for a newer one, from the next diagnostics."""
-    n = len(collector.diagnostics)
-    collector.wait_for(lambda: len(collector.diagnostics) > n, 5.0, "the next diagnostics")
-    return int(collector.status("processing")[2]["dropped_queue_full_total"])
-
-
 def test_image_publisher_disappears_and_comes_back_later(
     ros_domain_env: dict[str, str], collector: Any, bag: Path, tmp_path: Path
 ) -> None:
@@ -124,7 +117,7 @@ def test_image_publisher_disappears_and_comes_back_later(
         collector.wait_for_node()
         tn.replay(ros_domain_env, tmp_path / "a")
         collector.wait_settled(1)
-        n_first = len(collector.clouds)
+        n_first, d_first = len(collector.clouds), collector.dropped()
         # publishers gone: a diagnostics window without images says so
         quiet = wait_for_diag(
             collector,
@@ -136,12 +129,13 @@ def test_image_publisher_disappears_and_comes_back_later(
         assert node.poll() is None
         tn.replay(ros_domain_env, tmp_path / "b")
         collector.wait_settled(n_first + 1)
+        d_later = collector.dropped() - d_first
         assert node.poll() is None  # the same process throughout
     finally:
         code, err = tn.stop_node(node)
     assert code == 0, err
-    tn.check_clouds(collector.clouds[:n_first], first, collector)
-    tn.check_clouds(collector.clouds[n_first:], later, collector)  # resumed: >= 90 % points
+    tn.check_clouds(collector.clouds[:n_first], first, collector, d_first)
+    tn.check_clouds(collector.clouds[n_first:], later, collector, d_later)  # resumed: points
     _, _, proc = collector.status("processing")
     assert proc["time_jumps_total"] == "0"
     _, _, inputs = collector.status("input")
@@ -162,13 +156,11 @@ def test_imu_publisher_disappears_and_comes_back(
         collector.wait_for_node()
         tn.replay(ros_domain_env, tmp_path / "p1")
         collector.wait_settled(1)
-        n1 = len(collector.clouds)
-        dropped_before = dropped_total(collector)
+        n1, d1 = len(collector.clouds), collector.dropped()  # counts after wait_settled
         diag_mark = len(collector.diagnostics)
         tn.replay(ros_domain_env, tmp_path / "p2", "--topics", IMAGE, INFO)
         collector.wait_settled(n1 + 1)
-        n2 = len(collector.clouds)
-        dropped = dropped_total(collector) - dropped_before
+        n2, d2 = len(collector.clouds), collector.dropped()
         silent = wait_for_diag(
             collector,
             diag_mark,
@@ -178,22 +170,23 @@ def test_imu_publisher_disappears_and_comes_back(
         assert silent["owl: input"][0] >= 1
         tn.replay(ros_domain_env, tmp_path / "p3")
         collector.wait_settled(n2 + 1)
+        d3 = collector.dropped()
     finally:
         code, err = tn.stop_node(node)
     assert code == 0, err
-    tn.check_clouds(collector.clouds[:n1], before, collector)
+    tn.check_clouds(collector.clouds[:n1], before, collector, d1)
     gone = {header_to_ns(c.header): c for c in collector.clouds[n1:n2]}
     assert set(gone) <= set(no_imu)
     # not held back waiting for the IMU: each frame gave a cloud, or a newer frame replaced
     # it while the machine was busy (newest wins, counted by the node)
-    assert len(gone) + dropped >= 0.8 * len(no_imu), (len(gone), dropped, len(no_imu))
+    assert len(gone) + d2 - d1 >= 0.8 * len(no_imu), (len(gone), d2 - d1, len(no_imu))
     assert all(c.width == 0 for c in gone.values())  # require_gyro: no points without it
     reasons = [
         r["owl: processing"][2]["last_empty_reason"]
         for r in map(records_of, collector.diagnostics[diag_mark:])
     ]
     assert any("IMU" in why or "gyro" in why for why in reasons), reasons
-    tn.check_clouds(collector.clouds[n2:], after, collector)  # points are back
+    tn.check_clouds(collector.clouds[n2:], after, collector, d3 - d2)  # points are back
 
 
 QOS_KINDS = {
@@ -294,10 +287,15 @@ def test_three_times_the_processing_rate_memory_and_latency_bounded(
     assert received - processed - 2 <= frames["dropped_queue_full"] <= received - processed
     assert rep["rss"]["growth_percent"] < 10.0, rep["rss"]
     assert rep["rss"]["max_mib"] < 1.2 * rep["rss"]["warmup_mib"]
-    queue = 2  # config/owl.yaml queue_size: a frame waits for at most the queue + current
+    # config/owl.yaml queue_size 2: a frame waits for the rest of the worker's current
+    # frame, at most one queued ahead of it, and its own (worker cycles: conversion,
+    # engine, messages, publishing); one more cycle and 50 ms for IMU hand-over between
+    cycles = [s["frame_cycle_ms_max"] for s in rep["segments"] if s["frame_cycle_ms_max"]]
+    assert cycles, rep["segments"]
+    slowest = max(cycles)
     for seg in rep["segments"]:
-        if seg["latency_ms_p95"] is not None and seg["processing_ms_max"] is not None:
-            assert seg["latency_ms_p95"] <= (queue + 2) * seg["processing_ms_max"] + 50, seg
+        if seg["latency_ms_p95"] is not None:
+            assert seg["latency_ms_p95"] <= 4 * slowest + 50, (slowest, seg)
 
 
 def test_owl_record_reports_an_incompatible_publisher(
@@ -387,7 +385,7 @@ def test_malformed_messages_to_the_live_node(
         collector.wait_for_node()
         tn.replay(ros_domain_env, tmp_path / "a")
         collector.wait_settled(1)
-        n_first = len(collector.clouds)
+        n_first, d_first = len(collector.clouds), collector.dropped()
         collector.wait_for(
             lambda: all(p.get_subscription_count() >= 1 for p in (pub_image, pub_info, pub_imu)),
             10.0,
@@ -426,12 +424,13 @@ def test_malformed_messages_to_the_live_node(
         pub_info.publish(info)
         tn.replay(ros_domain_env, tmp_path / "b")
         collector.wait_settled(n_first + 1)
+        d_later = collector.dropped() - d_first
         assert node.poll() is None
     finally:
         code, err = tn.stop_node(node)
     assert code == 0, err
     assert "Traceback" not in err
-    tn.check_clouds(collector.clouds[n_first:], later, collector)
+    tn.check_clouds(collector.clouds[n_first:], later, collector, d_later)
     _, _, inputs = collector.status("input")
     assert inputs["camera_info_error"] == ""  # the valid one took over again
     assert int(inputs["bad_images_total"]) == 2
@@ -468,9 +467,10 @@ def test_sim_clock_restart_with_a_looping_bag(
     assert replayer.returncode == 0, rep_err
     seen = [header_to_ns(c.header) for c in collector.clouds]
     second = seen.index(stamps[-1]) + 1  # the first cloud of the second loop
-    tn.check_clouds(collector.clouds[:second], stamps, collector)
+    dropped = collector.dropped()  # over both loops: a bound for each
+    tn.check_clouds(collector.clouds[:second], stamps, collector, dropped)
     loop2 = [c for c in collector.clouds[second:] if header_to_ns(c.header) <= stamps[-1]]
-    tn.check_clouds(loop2[: len(stamps)], stamps, collector)  # warmed up again, then points
+    tn.check_clouds(loop2[: len(stamps)], stamps, collector, dropped)  # warmed up, then points
     _, _, proc = collector.status("processing")
     assert int(proc["time_jumps_total"]) >= 1 and "engine reset" in proc["last_time_jump"]
     diag_stamps = [header_to_ns(d.header) for d in collector.diagnostics]
