@@ -275,7 +275,7 @@ class OwlNode(Node):
             if self._stop.is_set():
                 break
             try:
-                busy = False
+                busy = False  # stays so if the step raises
                 busy = self._step()
                 now = time.monotonic_ns()
                 if now >= next_diag:

@@ -14,9 +14,9 @@ What :class:`Pipeline` does per input:
 - ``imu``: samples with NaN/inf rates, duplicate or out-of-order stamps are dropped and
   counted; a gap longer than ``imu_max_gap_s`` is never interpolated across (frames whose
   interval spans it count as not covered); a stamp more than ``max_frame_gap_s`` older
-  than the newest one is a backwards time jump (bag loop, sim clock restart): the engine
-  is reset and a diagnostic says so. A ring buffer of the last seconds of good samples
-  re-feeds a rebuilt engine.
+  than the newest one is a backwards time jump (bag loop, sim clock restart): frames
+  queued from before it are processed first, then the engine is reset and a diagnostic
+  says so. A ring buffer of the last seconds of good samples re-feeds a rebuilt engine.
 - ``image`` / ``image/compressed``: queued (at most ``queue_size``; when full the oldest
   is dropped and counted: the newest frame wins). A queued frame is processed once the IMU
   covers the interval since the previous frame, or after ``imu_wait_s`` (then the engine
