@@ -50,8 +50,9 @@ TWIST = "/ground_truth/twist"
 CONFIG = Path(__file__).resolve().parents[2] / "config" / "owl.yaml"
 ROTATION = "camera_to_imu_rotation_xyzw:=[-0.5,0.5,-0.5,0.5]"
 # The test machine is shared by several jobs (2 cores): a deeper queue than the default
-# lets the node ride out moments of CPU starvation, so these tests check that it keeps up
-# on average at real rate (throughput); latency is measured by owl_ros.latency.
+# lets the node ride out moments of CPU starvation. Frames it still drops for a newer one
+# are counted by the node and accounted for by the checks (check_clouds' ``dropped``);
+# throughput and latency are measured by owl_ros.latency.
 QUEUE = "queue_size:=8"
 # Longer than Fast DDS's default heartbeat period (3 s), after which a writer resends a
 # reliable sample its reader missed.
@@ -360,8 +361,10 @@ def test_replay_with_sim_time_and_clock(
     finally:
         code, err = stop_node(node)
     assert code == 0, err
-    by_stamp = check_clouds(collector.clouds, frame_stamps, collector, collector.dropped())
-    assert check_headings(collector.headings, reference) >= 0.9 * len(reference.headings)
+    dropped = collector.dropped()
+    by_stamp = check_clouds(collector.clouds, frame_stamps, collector, dropped)
+    compared = check_headings(collector.headings, reference)
+    assert compared >= 0.9 * (len(reference.headings) - dropped), (compared, dropped)
     speeds = truth_speeds(bag)
     metric = [c for c in by_stamp.values() if c.width > 0]
     for cloud in metric:  # x y z in metres, and the cloud says with which speed
