@@ -47,7 +47,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import astuple, dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
@@ -162,6 +162,11 @@ def _interp(times: Sequence[float], values: Sequence[float], t_s: float) -> floa
     return float(np.interp(t_s, np.asarray(times), np.asarray(values, dtype=np.float64)))
 
 
+def _max_finite(values: Iterable[float]) -> float:
+    """Largest finite value, NaN if there is none."""
+    return max((v for v in values if math.isfinite(v)), default=math.nan)
+
+
 def _segment(run: _Run, t0: float, t1: float) -> dict[str, float]:
     """Per-frame figures between t0 and t1 (s since start): node CPU seconds and frames
     processed are both interpolated at t0 and t1 (samples every second, diagnostics
@@ -188,14 +193,8 @@ def _segment(run: _Run, t0: float, t1: float) -> dict[str, float]:
         "rss_mib": _interp(st, [s.rss_mib for s in run.samples], t1),
         "processing_ms": float(np.median(proc)) if proc else math.nan,
         "processing_ms_p10": float(np.percentile(proc, 10)) if proc else math.nan,
-        "processing_ms_max": max(
-            (w.processing_ms_max for w in wins if math.isfinite(w.processing_ms_max)),
-            default=math.nan,
-        ),
-        "frame_cycle_ms_max": max(
-            (w.frame_cycle_ms_max for w in wins if math.isfinite(w.frame_cycle_ms_max)),
-            default=math.nan,
-        ),
+        "processing_ms_max": _max_finite(w.processing_ms_max for w in wins),
+        "frame_cycle_ms_max": _max_finite(w.frame_cycle_ms_max for w in wins),
         "cpu_ms_per_frame": 1e3 * (cpu(t1) - cpu(t0)) / n if n > 0 else math.nan,
         "frames_per_s": n / (t1 - t0) if t1 > t0 else math.nan,
         "dropped": round(dropped(t1) - dropped(t0)),
