@@ -20,13 +20,13 @@ test: lint  ## lint, then the whole test suite (unit, bags, DDS integration, col
 	$(PY) -m pytest
 
 demo: venv  ## render a scenario, run the pipeline, evaluate, plot; writes results/
-	$(PY) -m owl_ros.demo
+	$(PY) -m owl_ros.tools.demo
 
 bench: venv  ## full benchmark: OWL vs the OpenCV baseline, timings and accuracy
-	$(PY) -m owl_ros.bench
+	$(PY) -m owl_ros.tools.bench
 
 soak: venv  ## 10-minute looped replay through the live node: RSS and per-frame time
-	$(PY) -m owl_ros.soak
+	$(PY) -m owl_ros.tools.soak
 
 clean:  ## remove build products, results and the venv
 	rm -rf $(VENV) build install log results .pytest_cache .ruff_cache .mypy_cache

@@ -11,13 +11,13 @@ PACKAGE = "owl_ros"
 CONSOLE_SCRIPTS = [
     "owl_node = owl_ros.node:main",
     "owl_process = owl_ros.process:main",
-    "owl_eval = owl_ros.eval:main",
-    "owl_bench = owl_ros.bench:main",
-    "owl_latency = owl_ros.latency:main",
-    "owl_soak = owl_ros.soak:main",
-    "owl_make_bag = bags.make_bag:main",
-    "owl_replay = bags.replay:main",
-    "owl_record = bags.record:main",
+    "owl_eval = owl_ros.tools.evaluate:main",
+    "owl_bench = owl_ros.tools.bench:main",
+    "owl_latency = owl_ros.tools.latency:main",
+    "owl_soak = owl_ros.tools.soak:main",
+    "owl_make_bag = bags.cli.make_bag:main",
+    "owl_replay = bags.cli.replay:main",
+    "owl_record = bags.cli.record:main",
 ]
 
 setup(

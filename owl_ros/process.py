@@ -154,7 +154,7 @@ class Summary:
     elapsed_s: float
 
 
-def _tf_rotation(
+def tf_rotation(
     transforms: list[Any], imu_frame: str | None, camera_frame: str
 ) -> tuple[float, float, float, float] | None:
     """camera_to_imu rotation from /tf_static transforms (rosbags TransformStamped): the
@@ -348,7 +348,7 @@ def process_bag(
                         pipeline.add_imu(msg, now)
                     elif role == "camera_info":
                         if not decided:
-                            found = _tf_rotation(transforms, imu_frame, msg.header.frame_id)
+                            found = tf_rotation(transforms, imu_frame, msg.header.frame_id)
                             if found is not None:
                                 rotation, extrinsic_source = found, "tf_static"
                                 pipeline.reconfigure(

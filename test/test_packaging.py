@@ -10,7 +10,6 @@ from __future__ import annotations
 import ast
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import textwrap
@@ -19,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from bags.io import BagReader
+from owl_ros.tools.live import LiveNode
 
 REPO = Path(__file__).resolve().parents[1]
 BUILD_IGNORE = shutil.ignore_patterns(
@@ -106,6 +106,40 @@ def test_blocker_catches_a_ros_import(tmp_path: Path) -> None:
     assert "blocked rclpy" in done.stderr
 
 
+def test_product_imports_no_tool_and_no_module_changes_the_environment() -> None:
+    """The product (owl_ros without owl_ros.tools) and the bags library and simulator never
+    import a tool module; importing any module of the four packages leaves os.environ as
+    it was (no process-wide setting at import: owl_bench sets its thread counts in main)."""
+    code = textwrap.dedent(
+        """
+        import importlib, os, pkgutil, sys
+        import cv2  # OpenCV's own import sets LD_LIBRARY_PATH: not ours to check
+        before = dict(os.environ)
+        import bags, msg_adapters, owl_core, owl_ros
+        product = ["owl_ros.node", "owl_ros.pipeline", "owl_ros.params", "owl_ros.process",
+                   "bags.io", "bags.errors", "bags.sim.render", "bags.sim.scenarios",
+                   "bags.sim.sensors"]
+        for name in product:
+            importlib.import_module(name)
+        tools = sorted(m for m in sys.modules
+                       if m.startswith(("owl_ros.tools", "bags.cli.")))
+        names = [m.name for pkg in (bags, msg_adapters, owl_core, owl_ros)
+                 for m in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + ".")]
+        for name in names:
+            importlib.import_module(name)
+        changed = sorted(k for k in set(before) | set(os.environ)
+                         if before.get(k) != os.environ.get(k))
+        print(len(names), tools, changed)
+        sys.exit(1 if tools or changed else 0)
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr + done.stdout
+    assert int(done.stdout.split()[0]) >= 30, done.stdout
+
+
 @pytest.mark.slow
 @pytest.mark.dds
 def test_colcon_build_installs_what_ros2_run_needs(
@@ -164,13 +198,13 @@ def test_colcon_build_installs_what_ros2_run_needs(
     site = next((prefix / "lib").glob("python3*/site-packages"))
     run_env = {**env, "PYTHONPATH": os.pathsep.join([str(site), env.get("PYTHONPATH", "")])}
     lib = prefix / "lib" / "owl_ros"
-    node = subprocess.Popen(
-        [str(lib / "owl_node"), "--ros-args", "-p", "diagnostics_period_s:=0.2"],
+    node = LiveNode(
+        ["-p", "diagnostics_period_s:=0.2"],
         env=run_env,
+        command=[str(lib / "owl_node")],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
-        text=True,
-    )
+    ).start()
     try:
         recorded = subprocess.run(
             [str(lib / "owl_record"), str(tmp_path / "diag"), "/diagnostics", "--duration", "6"],
@@ -181,9 +215,8 @@ def test_colcon_build_installs_what_ros2_run_needs(
         )
         assert recorded.returncode == 0, recorded.stderr[-2000:]
     finally:
-        node.send_signal(signal.SIGINT)
-        node_out, _ = node.communicate(timeout=30)
-    assert node.returncode == 0, f"owl_node exited {node.returncode}: {node_out[-2000:]}"
+        code, node_out = node.stop(timeout_s=30)
+    assert code == 0, f"owl_node exited {code}: {node_out[-2000:]}"
     with BagReader(tmp_path / "diag") as bag:
         assert bag.topics["/diagnostics"].count >= 3, node_out[-2000:]
         first = bag.deserialize(next(bag.messages(["/diagnostics"])))

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from bags import scenarios
+from bags.cli.make_bag import BARREL, main
 from bags.io import BagReader
-from bags.make_bag import BARREL, main
-from bags.scenarios import SimOptions
-from bags.sensors import ImuOptions
+from bags.sim import scenarios
+from bags.sim.scenarios import SimOptions
+from bags.sim.sensors import ImuOptions
 
 ARGS = ["--seconds", "0.5", "--rate", "10", "--width", "160", "--height", "120", "--quiet"]
 
@@ -187,7 +187,7 @@ def test_list_help_and_module_entry(tmp_path: Path, capsys) -> None:
     assert main(["--help"]) == 0
     assert "--gyro-bias" in capsys.readouterr().out
     proc = subprocess.run(
-        [sys.executable, "-m", "bags.make_bag", "street", str(tmp_path / "b"), "--rate", "0"],
+        [sys.executable, "-m", "bags.cli.make_bag", "street", str(tmp_path / "b"), "--rate", "0"],
         capture_output=True,
         text=True,
         check=False,

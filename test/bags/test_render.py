@@ -1,4 +1,4 @@
-"""bags.render: exact geometry (independent float64 ray casting, OpenCV's distortion),
+"""bags.sim.render: exact geometry (independent float64 ray casting, OpenCV's distortion),
 anti-aliasing, texture coverage at every range, noise and determinism."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from bags.errors import ScenarioError
-from bags.render import Rect, Renderer, box, texture
+from bags.sim.render import Rect, Renderer, box, texture
 from owl_core.camera import CameraModel
 
 # camera optical frame looking along world +x (world: x forward, y left, z up)

@@ -16,11 +16,11 @@ from mcap.reader import make_reader
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Imu
 
+from bags.cli.record import RecordError, header_stamp_ns
+from bags.cli.record import parse_options as parse_record
+from bags.cli.replay import MATCH_SETTLE_S, ReplayError, split_ros_args
+from bags.cli.replay import parse_options as parse_replay
 from bags.io import BagReader, BagWriter, typestore
-from bags.record import RecordError, header_stamp_ns
-from bags.record import parse_options as parse_record
-from bags.replay import MATCH_SETTLE_S, ReplayError, split_ros_args
-from bags.replay import parse_options as parse_replay
 from msg_adapters.image import array_to_image
 from msg_adapters.stamps import make_header
 
@@ -220,7 +220,7 @@ def test_header_stamp_from_cdr_bytes_both_byte_orders():
 
 
 def test_replay_missing_path_one_line(tmp_path):
-    res = _run_cli("bags.replay", str(tmp_path / "nope"))
+    res = _run_cli("bags.cli.replay", str(tmp_path / "nope"))
     assert res.returncode == 1
     _one_error_line(res.stderr, "owl_replay: error:", "nope")
 
@@ -228,7 +228,7 @@ def test_replay_missing_path_one_line(tmp_path):
 def test_replay_non_bag_one_line(tmp_path):
     junk = tmp_path / "notes.txt"
     junk.write_text("not a bag\n")
-    res = _run_cli("bags.replay", str(junk))
+    res = _run_cli("bags.cli.replay", str(junk))
     assert res.returncode == 1
     _one_error_line(res.stderr, "owl_replay: error:", "not a bag", "notes.txt")
 
@@ -239,18 +239,18 @@ def test_replay_truncated_bag_one_line(tmp_path):
     mcap = next(bag.glob("*.mcap"))
     data = mcap.read_bytes()
     mcap.write_bytes(data[: len(data) // 2])
-    res = _run_cli("bags.replay", str(bag))
+    res = _run_cli("bags.cli.replay", str(bag))
     assert res.returncode == 1
     _one_error_line(res.stderr, "owl_replay: error:", "bag")
 
 
 def test_replay_bad_option_and_unknown_topic(tmp_path):
-    res = _run_cli("bags.replay", "x", "--rate", "-3")
+    res = _run_cli("bags.cli.replay", "x", "--rate", "-3")
     assert res.returncode == 2
     _one_error_line(res.stderr, "--rate", "-3")
     bag = tmp_path / "bag"
     _write_bag(bag, seconds=0.1, tf_static=False)
-    res = _run_cli("bags.replay", str(bag), "--topics", "/nope")
+    res = _run_cli("bags.cli.replay", str(bag), "--topics", "/nope")
     assert res.returncode == 1
     _one_error_line(res.stderr, "topic /nope is not in bag")
 
@@ -258,13 +258,13 @@ def test_replay_bad_option_and_unknown_topic(tmp_path):
 def test_record_refuses_existing_output(tmp_path):
     bag = tmp_path / "bag"
     _write_bag(bag, seconds=0.1, tf_static=False)
-    res = _run_cli("bags.record", str(bag), "/imu/data")
+    res = _run_cli("bags.cli.record", str(bag), "/imu/data")
     assert res.returncode == 1
     _one_error_line(res.stderr, "owl_record: error:", "exists")
 
 
 def test_help():
-    for module in ("bags.replay", "bags.record"):
+    for module in ("bags.cli.replay", "bags.cli.record"):
         res = _run_cli(module, "--help")
         assert res.returncode == 0 and "usage:" in res.stdout
 
@@ -278,7 +278,7 @@ def test_replay_to_record_byte_for_byte_in_order(tmp_path, ros_domain_env):
     src, out = tmp_path / "src", tmp_path / "out"
     _write_bag(src, seconds=1.0)
     rec = _start(
-        "bags.record",
+        "bags.cli.record",
         str(out),
         "/camera/image_raw",
         "/camera/camera_info",
@@ -287,7 +287,7 @@ def test_replay_to_record_byte_for_byte_in_order(tmp_path, ros_domain_env):
     )
     _wait_line(rec, "recording to")
     t0 = time.monotonic()
-    rep = _run_cli("bags.replay", str(src), "--wait-for-subscribers", env=ros_domain_env)
+    rep = _run_cli("bags.cli.replay", str(src), "--wait-for-subscribers", env=ros_domain_env)
     assert rep.returncode == 0, rep.stderr
     assert "Traceback" not in rep.stderr
     # tf2_msgs has no Python package here: skipped with one warning, not an error
@@ -318,11 +318,11 @@ def test_loop_remap_clock_and_sigint_on_both(tmp_path, ros_domain_env):
     src, out = tmp_path / "src", tmp_path / "out"
     _write_bag(src, seconds=0.5, tf_static=False)
     rec = _start(
-        "bags.record", str(out), "/image", "/clock", "--stamp", "header", env=ros_domain_env
+        "bags.cli.record", str(out), "/image", "/clock", "--stamp", "header", env=ros_domain_env
     )
     _wait_line(rec, "recording to")
     rep = _start(
-        "bags.replay",
+        "bags.cli.replay",
         str(src),
         "--topics",
         "/camera/image_raw",
@@ -368,7 +368,7 @@ def test_loop_remap_clock_and_sigint_on_both(tmp_path, ros_domain_env):
 @pytest.mark.dds
 def test_record_sigint_without_publishers_leaves_a_readable_empty_bag(tmp_path, ros_domain_env):
     out = tmp_path / "empty"
-    rec = _start("bags.record", str(out), "/nobody/publishes", env=ros_domain_env)
+    rec = _start("bags.cli.record", str(out), "/nobody/publishes", env=ros_domain_env)
     _wait_line(rec, "recording to")
     rec.send_signal(signal.SIGINT)
     stdout, stderr = rec.communicate(timeout=30)
@@ -391,7 +391,7 @@ def test_subscription_qos_matches_each_publisher(ros_domain_env):
     )
     from std_msgs.msg import String
 
-    from bags.record import subscription_qos
+    from bags.cli.record import subscription_qos
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(os.environ["ROS_DOMAIN_ID"]))

@@ -1,4 +1,4 @@
-"""bags.scenarios / bags.sensors: exact trajectories, REP 145 IMU, gyro vs ground-truth
+"""bags.sim.scenarios / bags.sim.sensors: exact trajectories, REP 145 IMU, gyro vs ground-truth
 rotation (through owl_core.gyro.GyroBuffer), range/pose consistency, moving mask, scaling."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from bags import scenarios
 from bags.errors import ScenarioError
-from bags.scenarios import SimOptions
-from bags.sensors import GRAVITY_W, ImuOptions
+from bags.sim import scenarios
+from bags.sim.scenarios import SimOptions
+from bags.sim.sensors import GRAVITY_W, ImuOptions
 from owl_core.geometry import quat_xyzw_to_matrix, so3_log
 from owl_core.gyro import GyroBuffer
 from owl_core.types import GyroSamples

@@ -1,6 +1,6 @@
 """OwlEngine: options, input checks, gyro handling, time handling, and the track fit.
 
-Uses a short rendered street scenario (bags.scenarios, 320x240, 0.5 s at 30 Hz), rendered
+Uses a short rendered street scenario (bags.sim.scenarios, 320x240, 0.5 s at 30 Hz), rendered
 once per module.
 """
 
@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from bags import scenarios
+from bags.sim import scenarios
 from owl_core.camera import CameraModel
 from owl_core.engine import EngineOptions, OwlEngine, fit_tracks
 from owl_core.errors import InvalidInputError

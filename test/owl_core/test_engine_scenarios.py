@@ -1,4 +1,4 @@
-"""End to end: rendered scenarios (bags.scenarios) through OwlEngine, scored against truth.
+"""End to end: rendered scenarios (bags.sim.scenarios) through OwlEngine, scored against truth.
 
 Each test renders a 320x240, 30 Hz scenario of 1.5 s (about 4 s of rendering) and checks
 the engine against the exact ground truth (camera velocity, per-pixel range, moving mask).
@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bags import scenarios
-from bags.sensors import ImuOptions
+from bags.sim import scenarios
+from bags.sim.sensors import ImuOptions
 from owl_core.engine import EngineOptions, OwlEngine
 from owl_core.types import FrameResult, ImageFrame, PointFlag
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from owl_core.geometry import so3_exp
-from owl_ros import bench
-from owl_ros.eval import heading_error_deg, score_frame, summarize
+from owl_ros.tools import bench
+from owl_ros.tools.evaluate import heading_error_deg, score_frame, summarize
 
 TINY = bench.Profile(
     "tiny", 160, 120, 0.4, 120, (bench.Case("street"), bench.Case("street", bench.BIAS))

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from owl_ros import demo
+from owl_ros.tools import demo
 
 
 @pytest.mark.slow

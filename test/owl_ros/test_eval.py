@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from bags import scenarios
-from bags.make_bag import write_bag
-from bags.scenarios import SimOptions
-from bags.sensors import ImuOptions
+from bags.cli.make_bag import write_bag
+from bags.sim import scenarios
+from bags.sim.scenarios import SimOptions
+from bags.sim.sensors import ImuOptions
 from owl_core.geometry import so3_exp
 from owl_core.types import FrameResult, PointFlag
-from owl_ros import eval as ev
+from owl_ros.tools import evaluate
 
 BIAS = (0.004, -0.002, 0.003)
 BIAS_ERROR = np.array([0.0006, 0.0, -0.0008])  # |.| = 0.001 rad/s
@@ -27,23 +27,23 @@ def test_heading_error_is_the_angle_between_directions():
     axis = np.cross(v, [1.0, 0.0, 0.0])
     for deg in (0.01, 1.0, 10.0, 90.0, 179.0):
         rot = so3_exp(axis / np.linalg.norm(axis) * math.radians(deg))
-        got = ev.heading_error_deg(5.0 * rot @ v, v)  # the length does not matter
+        got = evaluate.heading_error_deg(5.0 * rot @ v, v)  # the length does not matter
         assert got == pytest.approx(deg, abs=1e-9)
-    assert np.isnan(ev.heading_error_deg(np.zeros(3), v))
-    with pytest.raises(ev.EvalError, match=r"\(2,\)"):
-        ev.heading_error_deg(np.zeros(2), v)
+    assert np.isnan(evaluate.heading_error_deg(np.zeros(3), v))
+    with pytest.raises(evaluate.EvalError, match=r"\(2,\)"):
+        evaluate.heading_error_deg(np.zeros(2), v)
 
 
 def test_sampling_coverage_and_relative_error():
     img = np.arange(12, dtype=np.float32).reshape(3, 4)
     px = np.array([[0.4, 0.4], [2.6, 1.2], [3.49, 2.49], [-0.6, 0.0], [np.nan, 1.0]])
-    np.testing.assert_array_equal(ev.sample_nearest(img, px)[:3], [0, 7, 11])
-    assert np.isnan(ev.sample_nearest(img, px)[3:]).all()
+    np.testing.assert_array_equal(evaluate.sample_nearest(img, px)[:3], [0, 7, 11])
+    assert np.isnan(evaluate.sample_nearest(img, px)[3:]).all()
     # 2 of the 4 cells of a 2x2 grid over a 100 x 50 image
-    cells = ev.coverage([[10, 10], [20, 5], [90, 40]], 100, 50, grid=(2, 2))
+    cells = evaluate.coverage([[10, 10], [20, 5], [90, 40]], 100, 50, grid=(2, 2))
     assert cells == pytest.approx(0.5)
     np.testing.assert_allclose(
-        ev.relative_error([1.1, 0.9, np.nan], [1.0, 1.0, 1.0])[:2], [0.1, -0.1]
+        evaluate.relative_error([1.1, 0.9, np.nan], [1.0, 1.0, 1.0])[:2], [0.1, -0.1]
     )
 
 
@@ -109,8 +109,8 @@ def test_wrong_result_is_scored_with_exactly_its_error(truth_bag, tmp_path):
         fn += int(np.count_nonzero(on_car & (flags == 0)))
     assert tp > 0 and fn > 0  # the car is in view
     result = tmp_path / "result"
-    assert ev.write_result_bag(result, results) == len(frames)
-    out = ev.evaluate(result, path)
+    assert evaluate.write_result_bag(result, results) == len(frames)
+    out = evaluate.evaluate(result, path)
     s = out.summary
     assert s["frames"] == s["translating_frames"] == s["heading_frames"] == len(frames)
     # Vector3 is float64: the angle is exact to rounding
@@ -131,8 +131,8 @@ def test_cli_json_schema_and_text(truth_bag, tmp_path, capsys):
     path, _, frames = truth_bag
     rng = np.random.default_rng(1)
     result = tmp_path / "result"
-    ev.write_result_bag(result, [wrong_result(f, rng)[0] for f in frames[:-2]])
-    assert ev.main([str(result), "--truth", str(path), "--json"]) == 0
+    evaluate.write_result_bag(result, [wrong_result(f, rng)[0] for f in frames[:-2]])
+    assert evaluate.main([str(result), "--truth", str(path), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert set(doc) == {"summary", "notes", "frames"}
     keys = {
@@ -155,28 +155,28 @@ def test_cli_json_schema_and_text(truth_bag, tmp_path, capsys):
     assert doc["summary"]["heading_availability"] == pytest.approx((len(frames) - 2) / len(frames))
     assert doc["frames"][-1]["has_heading"] is False
     assert doc["frames"][0]["heading_deg"] == pytest.approx(HEADING_OFFSET_DEG, abs=1e-9)
-    assert ev.main([str(result), "--truth", str(path), "--per-frame"]) == 0
+    assert evaluate.main([str(result), "--truth", str(path), "--per-frame"]) == 0
     text = capsys.readouterr().out
     assert "heading error median / p90" in text and "10 deg" in text
 
 
 def test_cli_errors_are_one_line(truth_bag, tmp_path, capsys):
     path, _, _ = truth_bag
-    assert ev.main([str(tmp_path / "missing"), "--truth", str(path)]) == 2
+    assert evaluate.main([str(tmp_path / "missing"), "--truth", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "missing" in err and "Traceback" not in err
     # the truth bag has no /owl/points: named in the error
-    assert ev.main([str(path), "--truth", str(path)]) == 2
+    assert evaluate.main([str(path), "--truth", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "/owl/points" in err
     # a result bag is no truth bag
     result = tmp_path / "result"
-    ev.write_result_bag(result, [])
-    assert ev.main([str(result), "--truth", str(result)]) == 2
+    evaluate.write_result_bag(result, [])
+    assert evaluate.main([str(result), "--truth", str(result)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "/ground_truth/twist" in err
     with pytest.raises(SystemExit) as exc:
-        ev.main(["--help"])
+        evaluate.main(["--help"])
     assert exc.value.code == 0
 
 
@@ -185,12 +185,12 @@ def test_truncated_result_bag_is_scored_up_to_the_damage(truth_bag, tmp_path):
     rng = np.random.default_rng(2)
     result = tmp_path / "result"
     # enough points for several MCAP chunks: a cut leaves the first ones readable
-    ev.write_result_bag(result, [wrong_result(f, rng, 8000)[0] for f in frames])
+    evaluate.write_result_bag(result, [wrong_result(f, rng, 8000)[0] for f in frames])
     (mcap,) = result.glob("*.mcap")
     data = mcap.read_bytes()
     mcap.write_bytes(data[: len(data) * 2 // 3])  # a recorder killed mid-write
     (result / "metadata.yaml").unlink()
-    out = ev.evaluate(result, path)
+    out = evaluate.evaluate(result, path)
     assert any("damaged" in n for n in out.notes)
     assert 0 < out.summary["heading_frames"] < len(frames)
     assert out.summary["heading_deg_median"] == pytest.approx(HEADING_OFFSET_DEG, abs=1e-9)

@@ -7,7 +7,6 @@ rmw_fastrtps_cpp on a private ROS_DOMAIN_ID per test (``ros_domain_env``). One 3
 from __future__ import annotations
 
 import math
-import signal
 import subprocess
 import sys
 import threading
@@ -28,12 +27,13 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, PointCloud2
 
-from bags import make_bag
+from bags.cli import make_bag
 from bags.io import BagReader
 from msg_adapters.diagnostics import msg_to_records
 from msg_adapters.pointcloud import OWL_FIELDS, cloud_speed, cloud_to_array
 from msg_adapters.stamps import header_to_ns
 from owl_ros.process import ProcessOptions, Summary, process_bag
+from owl_ros.tools.live import LiveNode
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
@@ -52,7 +52,7 @@ ROTATION = "camera_to_imu_rotation_xyzw:=[-0.5,0.5,-0.5,0.5]"
 # The test machine is shared by several jobs (2 cores): a deeper queue than the default
 # lets the node ride out moments of CPU starvation. Frames it still drops for a newer one
 # are counted by the node and accounted for by the checks (check_clouds' ``dropped``);
-# throughput and latency are measured by owl_ros.latency.
+# throughput and latency are measured by owl_ros.tools.latency.
 QUEUE = "queue_size:=8"
 # Longer than Fast DDS's default heartbeat period (3 s), after which a writer resends a
 # reliable sample its reader missed.
@@ -204,21 +204,15 @@ def collector(ros_domain_env: dict[str, str]) -> Iterator[Collector]:
     c.close()
 
 
-def start_node(env: dict[str, str], *ros_args: str) -> subprocess.Popen[str]:
+def start_node(env: dict[str, str], *ros_args: str) -> LiveNode:
     """owl_node with the shipped config/owl.yaml, the bag's topics and extra -p values."""
-    args = ["--ros-args", "--params-file", str(CONFIG)]
+    args = ["--params-file", str(CONFIG)]
     for remap in REMAPS:
         args += ["-r", remap]
     args += ["-p", ROTATION, "-p", "diagnostics_period_s:=0.5", "-p", QUEUE]
     for item in ros_args:
         args += ["-p", item]
-    return subprocess.Popen(
-        [sys.executable, "-m", "owl_ros.node", *args],
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    return LiveNode(args, env=env, stdout=subprocess.PIPE).start()
 
 
 def truth_speeds(bag: Path) -> dict[int, float]:
@@ -237,24 +231,18 @@ def truth_speeds(bag: Path) -> dict[int, float]:
 
 def replay(env: dict[str, str], bag: Path, *extra: str) -> None:
     topics = [] if "--topics" in extra else ["--topics", *INPUTS]
-    cmd = [sys.executable, "-m", "bags.replay", str(bag), *topics, "-q"]
-    # --wait-for-subscribers also waits bags.replay.MATCH_SETTLE_S for the node's readers
+    cmd = [sys.executable, "-m", "bags.cli.replay", str(bag), *topics, "-q"]
+    # --wait-for-subscribers also waits bags.cli.replay.MATCH_SETTLE_S for the node's readers
     cmd += ["--wait-for-subscribers", "--wait-timeout", "20", *extra]
     run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60, check=False)
     assert run.returncode == 0, run.stderr
 
 
-def stop_node(proc: subprocess.Popen[str]) -> tuple[int, str]:
+def stop_node(node: LiveNode) -> tuple[int, str]:
     """SIGINT, then (exit code, stderr)."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        _, err = proc.communicate(timeout=15)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        _, err = proc.communicate()
-        raise AssertionError(f"node did not exit after SIGINT: {err}") from None
-    return proc.returncode, err
+    code, err = node.stop(timeout_s=15)
+    assert not node.killed, f"node did not exit after SIGINT: {err}"
+    return code, err
 
 
 def newest_wins_latency_bound_ms(slowest_cycle_ms: float, queue: int = 2) -> float:
@@ -478,17 +466,11 @@ def test_overload_newest_frame_wins_latency_bounded(
     collector.node.create_subscription(
         Image, "/owl/debug_image", debug.append, QoSProfile(depth=5)
     )
-    cmd_args = ["--ros-args"]
+    cmd_args = []
     for remap in REMAPS:
         cmd_args += ["-r", remap]
     cmd_args += ["-p", ROTATION, "-p", "diagnostics_period_s:=0.3"]
-    node = subprocess.Popen(
-        [sys.executable, "-m", "owl_ros.node", *cmd_args],
-        env=ros_domain_env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    node = LiveNode(cmd_args, env=ros_domain_env, stdout=subprocess.PIPE).start()
     try:
         collector.wait_for_node()
         replay(ros_domain_env, bag, "--rate", "5")

@@ -1,6 +1,6 @@
 """owl_ros.pipeline: the message -> engine -> message path, fed with rendered frames.
 
-The inputs are real rclpy messages built from an in-memory rendered scenario (bags.scenarios)
+The inputs are real rclpy messages built from an in-memory rendered scenario (bags.sim.scenarios)
 with the msg_adapters; arrival times are the stamps (a perfectly punctual sensor).
 """
 
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from geometry_msgs.msg import TwistStamped
 
-from bags import scenarios
-from bags.scenarios import CAMERA_FRAME, IMU_FRAME, SimOptions
+from bags.sim import scenarios
+from bags.sim.scenarios import CAMERA_FRAME, IMU_FRAME, SimOptions
 from msg_adapters.camera_info import camera_model_to_info
 from msg_adapters.image import array_to_image
 from msg_adapters.imu import gyro_to_imus

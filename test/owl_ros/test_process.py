@@ -1,6 +1,6 @@
 """owl_process: the node's pipeline over a rendered bag, no DDS.
 
-One 320x240, 1.2 s "street" bag is rendered per module (bags.make_bag) and processed a few
+One 320x240, 1.2 s "street" bag is rendered per module (bags.cli.make_bag) and processed a few
 times; outputs are read back with bags.io and rclpy deserialisation.
 """
 
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from rclpy.serialization import deserialize_message
 
-from bags import make_bag
+from bags.cli import make_bag
 from bags.io import BagReader
 from msg_adapters.diagnostics import msg_to_records
 from msg_adapters.image import image_to_array

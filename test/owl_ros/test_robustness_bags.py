@@ -19,10 +19,10 @@ from pathlib import Path
 
 import pytest
 
-from bags import make_bag, replay
+from bags.cli import make_bag, replay
 from bags.io import BagReader, BagWriter
-from owl_ros import eval as owl_eval
 from owl_ros import process
+from owl_ros.tools import evaluate
 
 IMAGE = "/camera/image_raw"
 MAGIC = b"\x89MCAP0\r\n"
@@ -149,21 +149,21 @@ def test_process_bag_without_the_image_topic_one_line(bags, capsys, tmp_path):
 
 @pytest.mark.parametrize(("name", "needle"), NOT_A_BAG)
 def test_eval_damaged_truth_bag_one_line(bags, capsys, name, needle):
-    assert owl_eval.main([str(bags["result"]), "--truth", str(bags[name])]) == 2
+    assert evaluate.main([str(bags["result"]), "--truth", str(bags[name])]) == 2
     one_line(capsys, "owl_eval", needle, bags[name].name)
 
 
 @pytest.mark.parametrize(("name", "needle"), NOT_A_BAG[:3])
 def test_eval_result_that_is_no_bag_one_line(bags, capsys, name, needle):
-    assert owl_eval.main([str(bags[name]), "--truth", str(bags["truth"])]) == 2
+    assert evaluate.main([str(bags[name]), "--truth", str(bags["truth"])]) == 2
     one_line(capsys, "owl_eval", needle, bags[name].name)
 
 
 @pytest.mark.parametrize("name", ["result_cut", "result_tail", "result_flip"])
 def test_eval_damaged_result_scores_the_readable_part(bags, capsys, name):
-    assert owl_eval.main([str(bags["result"]), "--truth", str(bags["truth"]), "--json"]) == 0
+    assert evaluate.main([str(bags["result"]), "--truth", str(bags["truth"]), "--json"]) == 0
     full = json.loads(capsys.readouterr().out)
-    assert owl_eval.main([str(bags[name]), "--truth", str(bags["truth"]), "--json"]) == 0
+    assert evaluate.main([str(bags[name]), "--truth", str(bags["truth"]), "--json"]) == 0
     captured = capsys.readouterr()
     assert "Traceback" not in captured.err
     part = json.loads(captured.out)
@@ -179,5 +179,5 @@ def test_eval_damaged_result_scores_the_readable_part(bags, capsys, name):
 
 def test_eval_result_without_points_or_heading_one_line(bags, capsys):
     # the truth bag as a result bag: no /owl/points, no /owl/heading
-    assert owl_eval.main([str(bags["no_image"]), "--truth", str(bags["truth"])]) == 2
+    assert evaluate.main([str(bags["no_image"]), "--truth", str(bags["truth"])]) == 2
     one_line(capsys, "owl_eval", "/owl/points", "no_image")

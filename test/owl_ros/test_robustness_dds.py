@@ -30,7 +30,7 @@ from rclpy.qos import (
 )
 from rclpy.serialization import deserialize_message, serialize_message
 
-from bags import make_bag
+from bags.cli import make_bag
 from bags.io import BagReader, BagWriter
 from msg_adapters.diagnostics import msg_to_records
 from msg_adapters.msgtypes import message_class
@@ -126,11 +126,11 @@ def test_image_publisher_disappears_and_comes_back_later(
             "'no images' in owl: input",
         )
         assert quiet["owl: input"][0] >= 1  # WARN
-        assert node.poll() is None
+        assert node.running()
         tn.replay(ros_domain_env, tmp_path / "b")
         collector.wait_settled(n_first + 1)
         d_later = collector.dropped() - d_first
-        assert node.poll() is None  # the same process throughout
+        assert node.running()  # the same process throughout
     finally:
         code, err = tn.stop_node(node)
     assert code == 0, err
@@ -271,7 +271,7 @@ def test_three_times_the_processing_rate_memory_and_latency_bounded(
     three times what the node processes. Memory stays bounded (RSS after warm-up grows
     < 10 %; queued 77 kB frames at 180 Hz would add ~13 MiB/s), every frame not processed
     is counted as dropped, latency stays within the queue bound."""
-    cmd = [sys.executable, "-m", "owl_ros.soak", "--minutes", "0.2", "--json", "-q"]
+    cmd = [sys.executable, "-m", "owl_ros.tools.soak", "--minutes", "0.2", "--json", "-q"]
     cmd += ["--clip-seconds", "1", "--speed", "6", "--domain", ros_domain_env["ROS_DOMAIN_ID"]]
     run = subprocess.run(
         cmd, env=ros_domain_env, capture_output=True, text=True, timeout=90, check=False
@@ -312,7 +312,7 @@ def test_owl_record_reports_an_incompatible_publisher(
     )
     out = tmp_path / "rec"
     rec = subprocess.Popen(
-        [sys.executable, "-m", "bags.record", str(out), topic],
+        [sys.executable, "-m", "bags.cli.record", str(out), topic],
         env=ros_domain_env,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -423,7 +423,7 @@ def test_malformed_messages_to_the_live_node(
         tn.replay(ros_domain_env, tmp_path / "b")
         collector.wait_settled(n_first + 1)
         d_later = collector.dropped() - d_first
-        assert node.poll() is None
+        assert node.running()
     finally:
         code, err = tn.stop_node(node)
     assert code == 0, err
@@ -442,7 +442,7 @@ def test_sim_clock_restart_with_a_looping_bag(
     same clouds with points as the first, with diagnostics stamped in bag time."""
     stamps = piece(bag, tmp_path / "a", 0.0, 1.2, tn.INPUTS)
     node = tn.start_node(ros_domain_env, "use_sim_time:=true")
-    cmd = [sys.executable, "-m", "bags.replay", str(tmp_path / "a"), "--loop", "--clock"]
+    cmd = [sys.executable, "-m", "bags.cli.replay", str(tmp_path / "a"), "--loop", "--clock"]
     cmd += ["--topics", *tn.INPUTS, "--wait-for-subscribers", "--wait-timeout", "20"]
     replayer = None
     try:

@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from owl_ros import soak
-from owl_ros.soak import Sample, SoakOptions, Window, _Run, make_report
+from owl_ros.tools import soak
+from owl_ros.tools.soak import Sample, SoakOptions, Window, _Run, make_report
 
 
 def _series(
@@ -111,7 +111,7 @@ def test_bad_options_one_line(args, needle, capsys):
 @pytest.mark.slow
 def test_short_soak_reports_from_real_samples(ros_domain_env):
     """12 s of a 2 s 320x240 street bag at 30 Hz through owl_node (the `make soak` path)."""
-    cmd = [sys.executable, "-m", "owl_ros.soak", "--minutes", "0.2", "--json", "-q"]
+    cmd = [sys.executable, "-m", "owl_ros.tools.soak", "--minutes", "0.2", "--json", "-q"]
     cmd += ["--clip-seconds", "2"]
     cmd += ["--domain", ros_domain_env["ROS_DOMAIN_ID"]]
     run = subprocess.run(

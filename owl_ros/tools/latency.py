@@ -10,8 +10,8 @@ from image publication to cloud reception, DDS included. ``--speed`` plays the c
 rate the node keeps up with. CPU (all threads of the node process) and RSS come from
 ``/proc``.
 
-    python -m owl_ros.latency --width 640 --height 480 --rate 30 --seconds 10
-    python -m owl_ros.latency --speed 1 1.5 2 3    # 30, 45, 60, 90 Hz input
+    python -m owl_ros.tools.latency --width 640 --height 480 --rate 30 --seconds 10
+    python -m owl_ros.tools.latency --speed 1 1.5 2 3    # 30, 45, 60, 90 Hz input
 
 ``measure(...)`` returns a :class:`Measurement` for reuse by the benchmark.
 """
@@ -21,8 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import subprocess
 import sys
 import threading
 import time
@@ -32,6 +30,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from owl_ros.tools.live import LiveNode
 
 PROG = "owl_latency"
 
@@ -78,8 +78,8 @@ class _Clip:
 
 def render_clip(scenario: str, seconds: float, width: int, height: int, rate: float) -> _Clip:
     """Render ``scenario`` into rclpy messages with stamps relative to the first frame."""
-    from bags import scenarios
-    from bags.scenarios import CAMERA_FRAME, IMU_FRAME, SimOptions
+    from bags.sim import scenarios
+    from bags.sim.scenarios import CAMERA_FRAME, IMU_FRAME, SimOptions
     from msg_adapters.camera_info import camera_model_to_info
     from msg_adapters.image import array_to_image
     from msg_adapters.imu import gyro_to_imus
@@ -145,8 +145,7 @@ def measure(
     env = {**os.environ, "ROS_DOMAIN_ID": str(dom)}
     env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
     q = clip.rotation
-    cmd = [sys.executable, "-m", "owl_ros.node", "--ros-args"]
-    cmd += [
+    cmd = [
         "-r",
         "image:=/lat/image",
         "-r",
@@ -156,7 +155,8 @@ def measure(
     ]
     cmd += ["-p", f"camera_to_imu_rotation_xyzw:=[{q[0]},{q[1]},{q[2]},{q[3]}]"]
     cmd += ["-p", f"max_features:={max_features}", *node_args]
-    node_proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    live = LiveNode(cmd, env=env).start()
+    node_pid = live.pid
     context = Context()
     rclpy.init(context=context, domain_id=dom)
     node = rclpy.create_node("owl_latency", context=context)
@@ -184,11 +184,11 @@ def measure(
     spinner.start()
     sent: list[int] = []
     try:
-        deadline = time.monotonic() + 30
-        while pub_img.get_subscription_count() < 1 or node.count_publishers("/owl/points") < 1:
-            if time.monotonic() > deadline or node_proc.poll() is not None:
-                raise RuntimeError("owl_node did not come up")
-            time.sleep(0.05)
+        live.wait_until(
+            lambda: (
+                pub_img.get_subscription_count() > 0 and node.count_publishers("/owl/points") > 0
+            )
+        )
         time.sleep(1.0)
         events = sorted(
             [(t, 0, m, None) for t, m in clip.images] + [(t, 1, m, w) for t, m, w in clip.imus],
@@ -200,14 +200,14 @@ def measure(
         window = t0 + round(warmup_s * 1e9)
         cpu0 = wall0 = None
         loop = 0
-        while time.time_ns() < end and node_proc.poll() is None:
+        while time.time_ns() < end and live.running():
             for offset, kind, msg, rate in events:
                 stamp = t0 + round((loop * clip_ns + offset) / speed)
                 wait = (stamp - time.time_ns()) * 1e-9
                 if wait > 0:
                     time.sleep(wait)
                 if cpu0 is None and stamp >= window:
-                    cpu0, wall0 = proc_cpu_s(node_proc.pid), time.monotonic()
+                    cpu0, wall0 = proc_cpu_s(node_pid), time.monotonic()
                 msg.header.stamp = ns_to_stamp(stamp)
                 if kind == 0:
                     clip.info.header.stamp = msg.header.stamp
@@ -223,16 +223,12 @@ def measure(
                     break
             loop += 1
         time.sleep(1.0)
-        cpu1, wall1 = proc_cpu_s(node_proc.pid), time.monotonic()
-        rss = proc_rss_mb(node_proc.pid)
+        cpu1, wall1 = proc_cpu_s(node_pid), time.monotonic()
+        rss = proc_rss_mb(node_pid)
     finally:
         stop.set()
         spinner.join(timeout=2)
-        node_proc.send_signal(signal.SIGINT)
-        try:
-            node_proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            node_proc.kill()
+        live.stop(timeout_s=10)
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=context)

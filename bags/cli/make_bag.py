@@ -22,7 +22,7 @@ Camera messages are logged at their image stamps, IMU messages at their IMU stam
 Gyro bias (``--gyro-bias``, IMU frame, rad/s): one number B is a bias of magnitude B along
 ``(1, 1, 1)/sqrt(3)`` (each axis B/sqrt(3)); three comma-separated numbers are the vector.
 
-Run ``python -m bags.make_bag --help`` (console script ``owl_make_bag``).
+Run ``python -m bags.cli.make_bag --help`` (console script ``owl_make_bag``).
 """
 
 from __future__ import annotations
@@ -38,12 +38,12 @@ from typing import Any
 
 import numpy as np
 
-from bags import scenarios
 from bags.cli import OneLineErrorParser
 from bags.errors import BagError
 from bags.io import BagWriter, typestore
-from bags.scenarios import CAMERA_FRAME, IMU_FRAME, Frame, SimOptions, Simulation
-from bags.sensors import ImuOptions
+from bags.sim import scenarios
+from bags.sim.scenarios import CAMERA_FRAME, IMU_FRAME, Frame, SimOptions, Simulation
+from bags.sim.sensors import ImuOptions
 from owl_core.errors import OwlError
 
 PROG = "owl_make_bag"

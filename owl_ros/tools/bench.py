@@ -1,6 +1,6 @@
 """owl_bench: OWL against the classical two-view baseline, side by side, in one process.
 
-For each standard case (a named scenario from :mod:`bags.scenarios`, with or without a
+For each standard case (a named scenario from :mod:`bags.sim.scenarios`, with or without a
 constant gyro bias) the frames are rendered in memory (no bags, no DDS) or loaded from the
 cache (``results/cache``; the images do not depend on the IMU, so the biased and unbiased
 rows share them). Then one pass over the frames:
@@ -10,7 +10,8 @@ rows share them). Then one pass over the frames:
    (:mod:`owl_core.baseline`): OpenCV's 5-point essential matrix + recoverPose +
    triangulation ("cv-5pt"), and the gyro-aided translation-only variant ("cv-gyro",
    derotated with the same gyro, without bias estimation);
-3. all three are scored by the same :mod:`owl_ros.eval` functions against the exact truth.
+3. all three are scored by the same :mod:`owl_ros.tools.evaluate` functions against the
+   exact truth.
 
 Timing: per-stage times from the engine (track = LK + detection, integrate, heading,
 looming) and the baseline's estimation time; frames/s = frames / (tracking + estimation)
@@ -25,40 +26,39 @@ process's maximum resident set size (it includes rendering).
 
 from __future__ import annotations
 
+import argparse
+import hashlib
+import json
+import math
 import os
+import platform
+import resource
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import cv2
+import numpy as np
+import numpy.typing as npt
 
-import argparse  # noqa: E402
-import hashlib  # noqa: E402
-import json  # noqa: E402
-import math  # noqa: E402
-import platform  # noqa: E402
-import resource  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from collections.abc import Callable, Sequence  # noqa: E402
-from dataclasses import dataclass, field, replace  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Any  # noqa: E402
-
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
-import numpy.typing as npt  # noqa: E402
-
-from bags import scenarios  # noqa: E402
-from bags.cli import OneLineErrorParser  # noqa: E402
-from bags.errors import BagError  # noqa: E402
-from bags.scenarios import SimOptions, Simulation  # noqa: E402
-from bags.sensors import ImuOptions  # noqa: E402
-from owl_core.baseline import BaselineFrame, BaselineOptions, TwoViewBaseline  # noqa: E402
-from owl_core.engine import EngineOptions, OwlEngine  # noqa: E402
-from owl_core.errors import OwlError  # noqa: E402
-from owl_core.types import FrameResult, ImageFrame  # noqa: E402
-from owl_ros.eval import Estimate, FrameScore, Truth, score_frame, summarize  # noqa: E402
+from bags.cli import OneLineErrorParser
+from bags.errors import BagError
+from bags.sim import scenarios
+from bags.sim.scenarios import SimOptions, Simulation
+from bags.sim.sensors import ImuOptions
+from owl_core.baseline import BaselineFrame, BaselineOptions, TwoViewBaseline
+from owl_core.engine import EngineOptions, OwlEngine
+from owl_core.errors import OwlError
+from owl_core.types import FrameResult, ImageFrame
+from owl_ros.tools.errors import BenchError, ToolError
+from owl_ros.tools.evaluate import Estimate, FrameScore, Truth, score_frame, summarize
 
 PROG = "owl_bench"
+#: Thread-count variables main() sets to 1 (unless already set) for one-thread timings.
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 METHODS = ("owl", "cv-5pt", "cv-gyro")
 #: Bias magnitude of the biased rows, rad/s, along (1, 1, 1)/sqrt(3) in the IMU frame.
 BIAS = 0.01
@@ -574,14 +574,21 @@ def _parse_cases(text: str) -> tuple[Case, ...]:
     for item in text.split(","):
         name, _, extra = item.strip().partition("+")
         if extra not in ("", "bias"):
-            raise BagError(f"case {item!r}: only the suffix '+bias' is known")
+            raise BenchError(f"case {item!r}: only the suffix '+bias' is known")
         scenarios.get(name)  # ScenarioError names the known ones
         out.append(Case(name, BIAS if extra else 0.0))
     return tuple(out)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``owl_bench``; returns the exit status."""
+    """Entry point of ``owl_bench``; returns the exit status.
+
+    Pins OpenCV and the BLAS libraries to one thread (``OMP_NUM_THREADS`` and friends,
+    unless already set): the timings are per-thread figures. Importing this module
+    changes nothing.
+    """
+    for var in THREAD_VARS:
+        os.environ.setdefault(var, "1")
     args = build_parser().parse_args(argv)
     profile = QUICK if args.quick else FULL
     try:
@@ -589,11 +596,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             profile = replace(profile, cases=_parse_cases(args.cases))
         if args.seconds is not None:
             if not (math.isfinite(args.seconds) and args.seconds > 0):
-                raise BagError(f"--seconds must be positive, got {args.seconds}")
+                raise BenchError(f"--seconds must be positive, got {args.seconds}")
             profile = replace(profile, seconds=args.seconds)
         if args.features is not None:
             if args.features <= 0:
-                raise BagError(f"--features must be positive, got {args.features}")
+                raise BenchError(f"--features must be positive, got {args.features}")
             profile = replace(profile, features=args.features)
 
         def log(text: str) -> None:
@@ -602,7 +609,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         cache = None if args.no_cache else Path(args.cache_dir)
         doc = run_bench(profile, cache, log)
-    except (BagError, OwlError, OSError) as err:
+    except (ToolError, BagError, OwlError, OSError) as err:
         print(f"{PROG}: error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -2,7 +2,7 @@
 
 In-memory use (tests, benchmarks, engine end-to-end runs; no bag needed)::
 
-    from bags import scenarios
+    from bags.sim import scenarios
     scenarios.names()                       # ["cube", "scaled", ...]
     scenarios.DESCRIPTIONS["street"]        # one line
     sim = scenarios.get("street").simulate(SimOptions(seconds=1.0, width=320, height=240))
@@ -18,7 +18,7 @@ Ground truth conventions: ``Frame.velocity`` is the camera velocity relative to 
 scene and ``Frame.omega`` its angular velocity, both in the camera optical frame at the
 image stamp; ``range_m`` is the distance from the camera centre along each pixel-centre ray
 (metres, +inf = sky); ``mask`` is True on independently moving objects. Scene and
-trajectories live in a world frame with x forward, y left, z up (see bags.sensors).
+trajectories live in a world frame with x forward, y left, z up (see bags.sim.sensors).
 
 Every scenario takes ``scale`` (:class:`SimOptions`): the whole scene, its textures and
 the camera path are multiplied by it (speeds too; rotations unchanged), so images, L,
@@ -36,8 +36,8 @@ import numpy as np
 import numpy.typing as npt
 
 from bags.errors import ScenarioError
-from bags.render import Rect, Renderer, box
-from bags.sensors import (
+from bags.sim.render import Rect, Renderer, box
+from bags.sim.sensors import (
     ImuData,
     ImuOptions,
     Trajectory,

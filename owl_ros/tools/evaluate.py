@@ -45,6 +45,7 @@ import numpy.typing as npt
 from bags.cli import OneLineErrorParser
 from bags.errors import BagError
 from bags.io import BagReader
+from owl_ros.tools.errors import EvalError, ToolError
 
 PROG = "owl_eval"
 FloatArray = npt.NDArray[np.float64]
@@ -63,10 +64,6 @@ POINTS_TOPICS = ("/owl/points", "owl/points")
 HEADING_TOPICS = ("/owl/heading", "owl/heading")
 DIAGNOSTICS_TOPIC = "/diagnostics"
 BIAS_KEYS = ("bias_x_rad_s", "bias_y_rad_s", "bias_z_rad_s")
-
-
-class EvalError(Exception):
-    """An input owl_eval cannot score (one line naming the bag, topic or value)."""
 
 
 # ------------------------------------------------------------------------ records
@@ -747,7 +744,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             heading_topic=args.heading_topic,
             progress=not args.json,
         )
-    except (EvalError, BagError, ValueError) as err:
+    except (ToolError, BagError, ValueError) as err:
         print(f"{PROG}: error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     if args.json:

@@ -8,10 +8,10 @@ Steps (progress on stderr, about a minute at 640x480 on two cores):
    ``results/demo/owl`` (owl/points, owl/heading, diagnostics). With ``--live`` the node
    runs over DDS instead: ``owl_node`` + ``owl_replay`` + ``owl_record`` (see :func:`_live`).
 3. ``owl_eval``: the result against the bag's ground truth.
-4. The classical baseline on the same frames and tracks (:mod:`owl_ros.bench`, in memory):
+4. The classical baseline on the same frames and tracks (:mod:`owl_ros.tools.bench`, in memory):
    OpenCV 5-point and gyro-aided two-view, scored by the same code.
 5. The ``cube`` scenario in memory for the shape-constancy figure.
-6. Figures (:mod:`owl_ros.plots`) into ``results/figures`` and ``results/report.md``.
+6. Figures (:mod:`owl_ros.tools.plots`) into ``results/figures`` and ``results/report.md``.
 """
 
 from __future__ import annotations
@@ -33,12 +33,10 @@ import numpy as np
 from bags.cli import OneLineErrorParser
 from bags.errors import BagError
 from owl_core.errors import OwlError
+from owl_ros.tools.errors import DemoError, ToolError
+from owl_ros.tools.live import LiveNode
 
 PROG = "owl_demo"
-
-
-class DemoError(Exception):
-    """A step of the demo failed (one line naming it)."""
 
 
 class _Log:
@@ -89,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _make_bag(args: argparse.Namespace, path: Path, log: _Log) -> list[str]:
-    from bags import make_bag
+    from bags.cli import make_bag
 
     argv = [
         args.scenario,
@@ -139,12 +137,8 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
     py = sys.executable
     logs = {name: out_bag.parent / f"{name}.log" for name in ("owl_node", "owl_record")}
     files = {name: path.open("w") for name, path in logs.items()}
-    node = subprocess.Popen(
+    node = LiveNode(
         [
-            py,
-            "-m",
-            "owl_ros.node",
-            "--ros-args",
             "-r",
             "image:=/camera/image_raw",
             "-r",
@@ -155,14 +149,13 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
             "camera_to_imu_rotation_xyzw:=[" + ",".join(f"{v:.17g}" for v in rotation_xyzw) + "]",
         ],
         env=env,
-        stdout=subprocess.DEVNULL,
         stderr=files["owl_node"],
-    )
+    ).start()
     rec = subprocess.Popen(
         [
             py,
             "-m",
-            "bags.record",
+            "bags.cli.record",
             str(out_bag),
             "/owl/points",
             "/owl/heading",
@@ -177,16 +170,16 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
     )
     try:
         time.sleep(2.0)  # let the node and the recorder come up before checking them
-        for name, proc in (("owl_node", node), ("owl_record", rec)):
-            if proc.poll() is not None:
+        for name, code in (("owl_node", node.returncode), ("owl_record", rec.poll())):
+            if code is not None:
                 tail = logs[name].read_text().strip().splitlines()[-1:]
-                raise DemoError(f"{name} exited (status {proc.returncode}): {tail}")
+                raise DemoError(f"{name} exited (status {code}): {tail}")
         log("  owl_replay at half speed (the node processes every frame)")
         rep = subprocess.run(
             [
                 py,
                 "-m",
-                "bags.replay",
+                "bags.cli.replay",
                 str(in_bag),
                 "-r",
                 "0.5",
@@ -208,14 +201,14 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
             raise DemoError(f"owl_replay failed: {rep.stderr.strip().splitlines()[-1:]}")
         time.sleep(3.0)  # the node finishes its queue, the recorder drains
     finally:
-        for proc in (node, rec):  # stop the node first, then the recorder
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(timeout=20)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+        node.stop(timeout_s=20)  # stop the node first, then the recorder
+        if rec.poll() is None:
+            rec.send_signal(signal.SIGINT)
+            try:
+                rec.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                rec.kill()
+                rec.wait()
         for f in files.values():
             f.close()
     if not out_bag.exists():
@@ -224,7 +217,7 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
 
 
 def _cube_figure(args: argparse.Namespace, fig_dir: Path, cache: Path, log: _Log) -> Path:
-    from owl_ros import bench, plots
+    from owl_ros.tools import bench, plots
 
     prof = bench.Profile("demo", args.width, args.height, 2.0, 1000, ())
     case = bench.Case("cube")
@@ -287,9 +280,8 @@ def _table(rows: dict[str, dict[str, Any]]) -> list[str]:
 
 def run_demo(args: argparse.Namespace) -> Path:
     """All steps; returns the report path."""
-    from bags import scenarios
-    from owl_ros import bench, plots
-    from owl_ros import eval as ev
+    from bags.sim import scenarios
+    from owl_ros.tools import bench, evaluate, plots
 
     scenarios.get(args.scenario)  # unknown name: ScenarioError listing the known ones
     if not (math.isfinite(args.seconds) and args.seconds > 0):
@@ -313,8 +305,8 @@ def run_demo(args: argparse.Namespace) -> Path:
         shutil.rmtree(owl_bag)
     log.step("owl_node over DDS" if args.live else f"owl_process {in_bag} -o {owl_bag}")
     if args.live:
-        from bags.make_bag import build_parser as make_parser
-        from bags.make_bag import options_from_args
+        from bags.cli.make_bag import build_parser as make_parser
+        from bags.cli.make_bag import options_from_args
 
         mount = options_from_args(make_parser().parse_args(make_argv)).imu.camera_to_imu_xyzw
         how = _live(in_bag, owl_bag, log, mount)
@@ -322,8 +314,8 @@ def run_demo(args: argparse.Namespace) -> Path:
         how = _process(in_bag, owl_bag, log)
 
     log.step(f"owl_eval {owl_bag} --truth {in_bag}")
-    evaluation = ev.evaluate(owl_bag, in_bag)
-    for line in ev.summary_lines(evaluation.summary):
+    evaluation = evaluate.evaluate(owl_bag, in_bag)
+    for line in evaluate.summary_lines(evaluation.summary):
         log(line)
 
     log.step("baseline (OpenCV 5-point, gyro-aided) on the same frames and tracks")
@@ -345,7 +337,7 @@ def run_demo(args: argparse.Namespace) -> Path:
         cube_png = _cube_figure(args, fig_dir, cache, log)
 
     log.step(f"figures -> {fig_dir}")
-    results = ev.read_results(owl_bag)
+    results = evaluate.read_results(owl_bag)
     times = (frames.stamps_ns - frames.stamps_ns[0]) * 1e-9
     owl_by_stamp = {s.stamp_ns: s.heading_deg for s in evaluation.frames}
     figs: dict[str, Path] = {}
@@ -392,7 +384,7 @@ def run_demo(args: argparse.Namespace) -> Path:
     lines = [
         f"# OWL demo: `{args.scenario}`",
         "",
-        f"Generated by `python -m owl_ros.demo` on {stamp} "
+        f"Generated by `python -m owl_ros.tools.demo` on {stamp} "
         f"({bench._cpu_name()}). Input: `owl_make_bag {' '.join(make_argv)}`; OWL run by "
         f"{how}; scored by `owl_eval {owl_bag} --truth {in_bag}`. The baselines run in memory "
         "on the same rendered frames and on the OWL tracker's tracks, scored by the same code.",
@@ -438,7 +430,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     t0 = time.monotonic()
     try:
         report = run_demo(args)
-    except (DemoError, BagError, OwlError, ValueError, OSError) as err:
+    except (ToolError, BagError, OwlError, ValueError, OSError) as err:
         print(f"{PROG}: error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

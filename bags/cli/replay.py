@@ -18,7 +18,7 @@ Exit status: 0 after the last message (or Ctrl-C / SIGTERM), 1 on a bag or type 
 
 Usage::
 
-    python -m bags.replay scene_bag --rate 0.5 --clock --topics /camera/image_raw /imu/data \\
+    python -m bags.cli.replay scene_bag --rate 0.5 --clock --topics /camera/image_raw /imu/data \\
         --remap /camera/image_raw:=/image
 """
 
@@ -406,7 +406,7 @@ def split_ros_args(args: Sequence[str]) -> tuple[list[str], list[str]]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console entry point (owl_replay = bags.replay:main)."""
+    """Console entry point (owl_replay = bags.cli.replay:main)."""
     own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
     try:
         opts = parse_options(own)

@@ -30,8 +30,8 @@ percentile follows the node's own work (a growing cost raises it too) while medi
 CPU time per frame (both reported) also move with the machine's load. Exit status 0 when
 both goals are met, 1 when one fails or the node dies, 2 on bad options.
 
-    python -m owl_ros.soak                     # 10 minutes (make soak)
-    python -m owl_ros.soak --minutes 0.5 --json
+    python -m owl_ros.tools.soak                     # 10 minutes (make soak)
+    python -m owl_ros.tools.soak --minutes 0.5 --json
 """
 
 from __future__ import annotations
@@ -55,21 +55,19 @@ from typing import Any, TextIO
 import numpy as np
 
 from bags.cli import OneLineErrorParser
-from owl_ros.latency import proc_cpu_s, proc_rss_mb
+from owl_ros.tools.errors import LiveNodeError, SoakError
+from owl_ros.tools.latency import proc_cpu_s, proc_rss_mb
+from owl_ros.tools.live import LiveNode
 
 PROG = "owl_soak"
 INPUTS = ("/camera/image_raw", "/camera/camera_info", "/imu/data")
 TF_STATIC = "/tf_static"
-CONFIG = Path(__file__).resolve().parents[1] / "config" / "owl.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "config" / "owl.yaml"
 #: goals of issue 7: RSS growth after warm-up and per-frame time growth, fractions.
 RSS_GOAL = 0.10
 FRAME_TIME_GOAL = 0.10
 #: longest warm-up, s (shorter runs: a fifth of the run).
 WARMUP_MAX_S = 60.0
-
-
-class SoakError(Exception):
-    """Bad option value or a node that could not be run (one-line message)."""
 
 
 @dataclass(frozen=True)
@@ -358,7 +356,7 @@ def report_lines(report: dict[str, Any]) -> list[str]:
 def _rotation_from_bag(bag_path: Path) -> tuple[float, float, float, float]:
     """camera_to_imu_rotation_xyzw from the bag's /tf_static (as owl_process does)."""
     from bags.io import BagReader
-    from owl_ros.process import _tf_rotation
+    from owl_ros.process import tf_rotation
 
     with BagReader(bag_path) as bag:
         transforms: list[Any] = []
@@ -368,7 +366,7 @@ def _rotation_from_bag(bag_path: Path) -> tuple[float, float, float, float]:
         cam = next(bag.messages(["/camera/camera_info"]))
         imu_frame = bag.deserialize(imu).header.frame_id
         cam_frame = bag.deserialize(cam).header.frame_id
-    found = _tf_rotation(transforms, imu_frame, cam_frame)
+    found = tf_rotation(transforms, imu_frame, cam_frame)
     return found if found is not None else (0.0, 0.0, 0.0, 1.0)
 
 
@@ -494,7 +492,7 @@ def run_soak(opts: SoakOptions, stream: TextIO = sys.stderr) -> dict[str, Any]:
     Raises:
         SoakError: the node did not start or died, or the run was too short to report.
     """
-    from bags import make_bag
+    from bags.cli import make_bag
 
     with tempfile.TemporaryDirectory(prefix="owl_soak_") as tmp:
         work = Path(opts.log_dir) if opts.log_dir else Path(tmp)
@@ -522,9 +520,7 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain), "PYTHONUNBUFFERED": "1"}
     env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
     q = _rotation_from_bag(bag)
-    cmd = [sys.executable, "-m", "owl_ros.node", "--ros-args"]
-    if CONFIG.is_file():
-        cmd += ["--params-file", str(CONFIG)]
+    cmd = ["--params-file", str(CONFIG)] if CONFIG.is_file() else []
     cmd += ["-r", f"image:={INPUTS[0]}", "-r", f"camera_info:={INPUTS[1]}"]
     cmd += ["-r", f"imu:={INPUTS[2]}", "-p", "diagnostics_period_s:=1.0"]
     cmd += ["-p", f"camera_to_imu_rotation_xyzw:=[{q[0]},{q[1]},{q[2]},{q[3]}]"]
@@ -533,7 +529,8 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
     clip, clip_ns = _load_clip(bag) if opts.loop_mode == "restamp" else ([], 0)
     run = _Run()
     log = log_path.open("w")
-    node_proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
+    live = LiveNode(cmd, env=env, stdout=log, stderr=subprocess.STDOUT).start()
+    node_pid = live.pid
     context = Context()
     rclpy.init(context=context, domain_id=domain)
     node = rclpy.create_node("owl_soak", context=context)
@@ -574,13 +571,15 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
     spinner.start()
     replayer: subprocess.Popen[bytes] | None = None
     try:
-        deadline = time.monotonic() + 30.0
-        while node.count_publishers("/owl/points") < 1 or (feeder and not feeder.ready()):
-            if node_proc.poll() is not None:
-                raise SoakError(f"owl_node exited with code {node_proc.returncode} ({log_path})")
-            if time.monotonic() > deadline:
-                raise SoakError(f"owl_node did not come up within 30 s ({log_path})")
-            time.sleep(0.05)
+        try:
+            live.wait_until(
+                lambda: (
+                    node.count_publishers("/owl/points") > 0 and (feeder is None or feeder.ready())
+                ),
+                what="up",
+            )
+        except LiveNodeError as err:
+            raise SoakError(f"{err} ({log_path})") from None
         time.sleep(0.5)
         t0[0] = time.monotonic()
         run.windows.clear()
@@ -588,7 +587,7 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
             feeder.end_mono = t0[0] + opts.duration_s
             feeder.start()
         else:
-            replay_cmd = [sys.executable, "-m", "bags.replay", str(bag), "--loop", "-q"]
+            replay_cmd = [sys.executable, "-m", "bags.cli.replay", str(bag), "--loop", "-q"]
             replay_cmd += ["--rate", str(opts.speed)]
             replayer = subprocess.Popen(
                 [*replay_cmd, "--topics", *INPUTS],
@@ -600,14 +599,14 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
         next_progress = t0[0] + 30.0
         end = t0[0] + opts.duration_s
         while (now := time.monotonic()) < end:
-            if node_proc.poll() is not None:
+            if not live.running():
                 raise SoakError(
-                    f"owl_node died after {now - t0[0]:.0f} s with code {node_proc.returncode} "
+                    f"owl_node died after {now - t0[0]:.0f} s with code {live.returncode} "
                     f"({log_path})"
                 )
             if now >= next_sample:
                 run.samples.append(
-                    Sample(now - t0[0], proc_rss_mb(node_proc.pid), proc_cpu_s(node_proc.pid))
+                    Sample(now - t0[0], proc_rss_mb(node_pid), proc_cpu_s(node_pid))
                 )
                 next_sample += opts.sample_s
             if not opts.quiet and now >= next_progress:
@@ -615,7 +614,7 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
                 next_progress += 30.0
             time.sleep(max(min(next_sample - time.monotonic(), 0.2), 0.0))
         elapsed = time.monotonic() - t0[0]
-        run.samples.append(Sample(elapsed, proc_rss_mb(node_proc.pid), proc_cpu_s(node_proc.pid)))
+        run.samples.append(Sample(elapsed, proc_rss_mb(node_pid), proc_cpu_s(node_pid)))
         if feeder is not None:
             feeder.stop.set()
             feeder.join(timeout=5)
@@ -630,14 +629,7 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
             feeder.stop.set()
         if replayer is not None and replayer.poll() is None:
             replayer.kill()
-        if node_proc.poll() is None:
-            node_proc.send_signal(signal.SIGINT)
-            try:
-                node_proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                node_proc.kill()
-                node_proc.wait()
-        run.node_exit = node_proc.returncode
+        run.node_exit, _ = live.stop(timeout_s=15)
         log.close()
         spinning.set()
         spinner.join(timeout=2)
@@ -729,7 +721,7 @@ def options_from_args(ns: argparse.Namespace) -> SoakOptions:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``owl_soak`` (``make soak``); 0 = both goals met."""
-    from bags import scenarios
+    from bags.sim import scenarios
 
     ns = build_parser().parse_args(argv)
     try:

@@ -31,9 +31,9 @@ from dataclasses import dataclass
 from typing import Any, TextIO
 
 from bags.cli import StopRequest
+from bags.cli.replay import split_ros_args
 from bags.errors import BagError
 from bags.io import BagWriter
-from bags.replay import split_ros_args
 from msg_adapters.errors import AdapterError
 from msg_adapters.msgtypes import header_first, message_class
 from msg_adapters.stamps import NS_PER_S
@@ -321,7 +321,7 @@ def _drain(executor: Any, recorder: Recorder, limit_s: float = 2.0) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console entry point (owl_record = bags.record:main)."""
+    """Console entry point (owl_record = bags.cli.record:main)."""
     own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
     try:
         opts = parse_options(own)
