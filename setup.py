@@ -18,6 +18,7 @@ CONSOLE_SCRIPTS = [
     "owl_make_bag = bags.cli.make_bag:main",
     "owl_replay = bags.cli.replay:main",
     "owl_record = bags.cli.record:main",
+    "owl_import = bags.cli.importers.cli:main",
 ]
 
 setup(

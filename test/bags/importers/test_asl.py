@@ -1,0 +1,131 @@
+"""ASL import of a folder written from a rendered scenario: ground truth, calibration, eval."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from bags.cli.importers.asl import read_asl
+from bags.cli.importers.cli import main
+from bags.cli.importers.common import ImportOptions, write_dataset
+from bags.io import BagReader
+from owl_core.geometry import quat_xyzw_to_matrix
+
+
+def _by_stamp(bag_path: Path, topic: str) -> dict[int, Any]:
+    with BagReader(bag_path) as bag:
+        out = {}
+        for raw in bag.messages([topic]):
+            msg = bag.deserialize(raw)
+            out[msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec] = msg
+        return out
+
+
+@pytest.fixture(scope="module")
+def asl_bag(asl_folder: Any, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("asl_bag") / "bag"
+    write_dataset(read_asl(asl_folder.root), out, ImportOptions())
+    return out
+
+
+def test_twist_matches_the_renderer_within_the_differentiation_error(
+    asl_folder: Any, asl_bag: Path, bound: Any
+) -> None:
+    sim = asl_folder.sim
+    twists = _by_stamp(asl_bag, "/ground_truth/twist")
+    # every image lies inside the 200 Hz ground truth (it starts 50 ms before the first)
+    assert sorted(twists) == [int(s) for s in asl_folder.stamps_ns]
+    lin_bound, ang_bound = bound(sim, asl_folder.gt_spacing_s, True)
+    lin_err, ang_err = [], []
+    for ns, msg in twists.items():
+        v, w = sim.twist(sim.time_of(ns))
+        tw = msg.twist
+        lin_err.append(
+            np.linalg.norm([tw.linear.x - v[0], tw.linear.y - v[1], tw.linear.z - v[2]])
+        )
+        ang_err.append(
+            np.linalg.norm([tw.angular.x - w[0], tw.angular.y - w[1], tw.angular.z - w[2]])
+        )
+    assert max(lin_err) <= lin_bound, (max(lin_err), lin_bound)
+    assert max(ang_err) <= ang_bound, (max(ang_err), ang_bound)
+    assert ang_bound < 1e-3  # the bound itself is small: 200 Hz poses
+
+
+def test_bias_calibration_and_extrinsic(asl_folder: Any, asl_bag: Path) -> None:
+    sim = asl_folder.sim
+    biases = _by_stamp(asl_bag, "/ground_truth/gyro_bias")
+    assert len(biases) == asl_folder.stamps_ns.size
+    for msg in biases.values():
+        assert msg.header.frame_id == "imu_link"
+        assert [msg.vector.x, msg.vector.y, msg.vector.z] == pytest.approx(
+            asl_folder.bias, abs=1e-12
+        )
+    info = next(iter(_by_stamp(asl_bag, "/camera/camera_info").values()))
+    assert info.distortion_model == "plumb_bob"
+    assert list(info.d) == pytest.approx([*sim.camera.D[:4], 0.0], abs=1e-15)
+    assert np.asarray(info.k).reshape(3, 3) == pytest.approx(sim.camera.K, abs=1e-12)
+    with BagReader(asl_bag) as bag:
+        (raw,) = list(bag.messages(["/tf_static"]))
+        (tf,) = bag.deserialize(raw).transforms
+        assert bag.topics["/imu/data"].count > 0
+        assert bag.topics["/camera/image_raw"].qos_kind == "sensor"
+        assert bag.topics["/tf_static"].qos_kind == "latched"
+    assert (tf.header.frame_id, tf.child_frame_id) == ("imu_link", "camera_optical_frame")
+    q = tf.transform.rotation
+    assert quat_xyzw_to_matrix([q.x, q.y, q.z, q.w]) == pytest.approx(sim.R_bc, abs=1e-9)
+    tr = tf.transform.translation
+    assert [tr.x, tr.y, tr.z] == pytest.approx([0.05, -0.02, 0.01], abs=1e-12)
+
+
+def test_equidistant_sensor_yaml_becomes_equidistant(asl_folder: Any, tmp_path: Path) -> None:
+    import shutil
+
+    root = tmp_path / "equi"
+    shutil.copytree(asl_folder.root, root)
+    yaml = root / "mav0" / "cam0" / "sensor.yaml"
+    text = yaml.read_text().replace("radial-tangential", "equidistant")
+    yaml.write_text(text)
+    ds = read_asl(root)
+    assert ds.camera.distortion_model == "equidistant"
+    assert ds.camera.D == pytest.approx(asl_folder.sim.camera.D[:4])
+
+
+def test_process_and_eval_on_the_import(
+    asl_folder: Any, asl_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from owl_ros.process import ProcessOptions, process_bag
+    from owl_ros.tools.evaluate import evaluate
+
+    out = tmp_path / "result"
+    summary = process_bag(asl_bag, out, ProcessOptions())
+    assert summary.extrinsic_source == "tf_static"
+    ev = evaluate(out, asl_bag)
+    s = ev.summary
+    assert s["frames"] == 21 and s["heading_frames"] >= 10
+    assert s["heading_deg_median"] < 5.0  # scored against the imported twist
+    assert s["range_scored"] is False and s["range_rel_median"] is None
+    assert any("not scored: no range ground truth" in n for n in ev.notes)
+    assert s["bias_scored"] is True
+    assert s["truth_gyro_bias_rad_s"] == pytest.approx(asl_folder.bias)
+    assert s["bias_error_final_rad_s"] is not None
+    from owl_ros.tools.evaluate import main as eval_main
+
+    assert eval_main([str(out), "--truth", str(asl_bag)]) == 0
+    text = capsys.readouterr().out
+    assert "not scored: no range ground truth" in text
+
+
+def test_cli_prints_the_rotation_line(
+    asl_folder: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "bag"
+    assert main([str(asl_folder.root), str(out), "--seconds", "0.5", "--every", "2", "-q"]) == 0
+    line = capsys.readouterr().out.strip()
+    assert line.startswith("camera_to_imu_rotation_xyzw: [")
+    q = [float(v) for v in line.split("[")[1].rstrip("]").split(",")]
+    assert quat_xyzw_to_matrix(q) == pytest.approx(asl_folder.sim.R_bc, abs=1e-8)
+    with BagReader(out) as bag:
+        assert bag.topics["/camera/image_raw"].count == 6  # 0, 0.1, ... 0.5 s
