@@ -17,9 +17,15 @@ baseline in ``owl_bench``, see :func:`score_frame` and :func:`summarize`):
   moving mask (``/ground_truth/moving_mask``) sampled at the point.
 - **gyro-bias error** (rad/s, IMU frame): ``|b_est - b_true|``; the estimate comes from the
   result's ``/diagnostics`` (``owl: gyro`` keys ``bias_x_rad_s`` ...), the truth from the
-  truth bag's ``owl_make_bag`` options (``--gyro-bias``; metadata ``custom_data``). A bias
-  random walk (``--gyro-bias-walk``) is not recorded in the bag, so the truth is then only
-  the initial bias (the text says so).
+  truth bag's ``/ground_truth/gyro_bias`` (geometry_msgs/Vector3Stamped, IMU frame, at image
+  stamps: ``owl_import`` writes it from EuRoC's ``b_w``), else from its ``owl_make_bag``
+  options (``--gyro-bias``; metadata ``custom_data``). A bias random walk
+  (``--gyro-bias-walk``) is not recorded in a synthetic bag, so the truth is then only the
+  initial bias (the text says so). Without either, the bias is "not scored" (a note).
+
+A truth bag without ``/ground_truth/range`` (an imported real recording) scores headings
+and points only: r/|t| is reported as "not scored: no range ground truth" (summary key
+``range_scored`` false; the image size then comes from ``/camera/camera_info``).
 
 Result topics: ``/owl/points`` (sensor_msgs/PointCloud2 with at least ``u v
 range_over_speed flags``) and ``/owl/heading`` (geometry_msgs/Vector3Stamped), matched to
@@ -59,7 +65,10 @@ TRUTH_TOPICS = {
     "twist": "/ground_truth/twist",
     "range": "/ground_truth/range",
     "mask": "/ground_truth/moving_mask",
+    "bias": "/ground_truth/gyro_bias",
 }
+CAMERA_INFO_TOPIC = "/camera/camera_info"
+NO_RANGE = "not scored: no range ground truth"
 POINTS_TOPICS = ("/owl/points", "owl/points")
 HEADING_TOPICS = ("/owl/heading", "owl/heading")
 DIAGNOSTICS_TOPIC = "/diagnostics"
@@ -534,14 +543,16 @@ def iter_truth(path: str | Path) -> Iterator[Truth]:
 
     with BagReader(path) as bag:
         topics = bag.topics
-        for key in ("twist", "range"):
-            if TRUTH_TOPICS[key] not in topics:
-                msg = f"truth bag {path} has no {TRUTH_TOPICS[key]} (has: "
-                raise EvalError(msg + ", ".join(sorted(topics)) + ")")
+        if TRUTH_TOPICS["twist"] not in topics:
+            msg = f"truth bag {path} has no {TRUTH_TOPICS['twist']} (has: "
+            raise EvalError(msg + ", ".join(sorted(topics)) + ")")
+        has_range = TRUTH_TOPICS["range"] in topics
+        no_range = None if has_range else _no_range_image(bag)
         has_mask = TRUTH_TOPICS["mask"] in topics
-        need = 3 if has_mask else 2
+        need = 1 + has_range + has_mask
         partial: dict[int, dict[str, Any]] = {}
-        read = [TRUTH_TOPICS[k] for k in ("twist", "range", "mask") if k != "mask" or has_mask]
+        present = {"twist": True, "range": has_range, "mask": has_mask}
+        read = [TRUTH_TOPICS[k] for k, there in present.items() if there]
         for raw in bag.messages(read):
             msg = _rclpy_msg(bag, raw)
             stamp = header_to_ns(msg.header)
@@ -555,7 +566,38 @@ def iter_truth(path: str | Path) -> Iterator[Truth]:
                 slot["mask"] = image_to_array(msg) > 0
             if len(slot) == need:
                 del partial[stamp]
-                yield Truth(stamp, slot["velocity"], slot["range"], slot.get("mask"))
+                rng = slot["range"] if has_range else no_range
+                yield Truth(stamp, slot["velocity"], rng, slot.get("mask"))
+
+
+def _no_range_image(bag: BagReader) -> npt.NDArray[np.float32]:
+    """An all-NaN (H, W) range image (nothing scored), sized from the bag's camera_info."""
+    if CAMERA_INFO_TOPIC not in bag.topics:
+        msg = f"truth bag {bag.path} has neither {TRUTH_TOPICS['range']} nor {CAMERA_INFO_TOPIC}"
+        raise EvalError(msg + " (the image size is needed for coverage)")
+    info = _rclpy_msg(bag, next(iter(bag.messages([CAMERA_INFO_TOPIC]))))
+    return np.full((int(info.height), int(info.width)), np.nan, dtype=np.float32)
+
+
+def truth_has_range(path: str | Path) -> bool:
+    """Whether the truth bag has a range image topic (r/|t| can be scored)."""
+    with BagReader(path) as bag:
+        return TRUTH_TOPICS["range"] in bag.topics
+
+
+def truth_bias_track(path: str | Path) -> dict[int, FloatArray]:
+    """The truth bag's /ground_truth/gyro_bias by header stamp (ns), {} when absent."""
+    from msg_adapters.stamps import header_to_ns
+
+    with BagReader(path) as bag:
+        if TRUTH_TOPICS["bias"] not in bag.topics:
+            return {}
+        out: dict[int, FloatArray] = {}
+        for raw in bag.messages([TRUTH_TOPICS["bias"]]):
+            msg = _rclpy_msg(bag, raw)
+            v = msg.vector
+            out[header_to_ns(msg.header)] = np.array([v.x, v.y, v.z], dtype=np.float64)
+        return out
 
 
 def truth_has_mask(path: str | Path) -> bool:
@@ -640,18 +682,25 @@ def evaluate(
     estimates = read_estimates(result_path, points_topic, heading_topic, notes)
     info = truth_info(truth_path)
     truth_bias = None
-    if "gyro_bias" in info:
+    bias_track = truth_bias_track(truth_path)
+    if bias_track:
+        truth_bias = bias_track[max(bias_track)]
+    elif "gyro_bias" in info:
         truth_bias = np.asarray(info["gyro_bias"], dtype=np.float64)
         if float(info.get("gyro_bias_walk", 0.0) or 0.0) > 0:
             notes.append("truth bias = the initial bias only (the bag has a bias random walk)")
     else:
         notes.append("truth bag records no gyro bias: bias error not scored")
+    has_range = truth_has_range(truth_path)
+    if not has_range:
+        notes.append(f"range_over_speed {NO_RANGE}")
     has_mask = truth_has_mask(truth_path)
     scores: list[FrameScore] = []
     t0 = time.monotonic()
     last = t0
     for truth in iter_truth(truth_path):
-        scores.append(score_frame(estimates.pop(truth.stamp_ns, None), truth, truth_bias))
+        frame_bias = bias_track.get(truth.stamp_ns) if bias_track else truth_bias
+        scores.append(score_frame(estimates.pop(truth.stamp_ns, None), truth, frame_bias))
         if progress and time.monotonic() - last > 2.0:
             last = time.monotonic()
             print(f"{PROG}: {len(scores)} frames scored", file=sys.stderr, flush=True)
@@ -661,6 +710,8 @@ def evaluate(
         notes.append(f"{len(estimates)} result frames have no ground truth (ignored)")
     summary = summarize(scores, has_mask)
     summary["truth_gyro_bias_rad_s"] = None if truth_bias is None else truth_bias.tolist()
+    summary["range_scored"] = has_range
+    summary["bias_scored"] = truth_bias is not None
     summary["scenario"] = info.get("scenario")
     return Evaluation(summary, scores, notes)
 
@@ -693,9 +744,14 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
         (
             "range_over_speed rel. error median / p90",
             f"{_fmt(s['range_rel_median'], ' %', 100)}"
-            f" / {_fmt(s['range_rel_p90'], ' %', 100)} ({s['range_points']} static points)",
+            f" / {_fmt(s['range_rel_p90'], ' %', 100)} ({s['range_points']} static points)"
+            if s.get("range_scored", True)
+            else NO_RANGE,
         ),
-        ("range_over_speed signed median", _fmt(s["range_signed_median"], " %", 100)),
+        (
+            "range_over_speed signed median",
+            _fmt(s["range_signed_median"], " %", 100) if s.get("range_scored", True) else NO_RANGE,
+        ),
         ("points per frame", _fmt(s["points_per_frame"], "", 1.0, 4)),
         ("image coverage (16x12 cells)", _fmt(s["coverage_mean"], " %", 100)),
         (
@@ -706,7 +762,9 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
         (
             "gyro-bias error final / median",
             f"{_fmt(s['bias_error_final_rad_s'], ' rad/s')} / "
-            f"{_fmt(s['bias_error_median_rad_s'], ' rad/s')}",
+            f"{_fmt(s['bias_error_median_rad_s'], ' rad/s')}"
+            if s.get("bias_scored", True)
+            else "not scored: no gyro-bias ground truth",
         ),
     ]
     width = max(len(k) for k, _ in rows)
