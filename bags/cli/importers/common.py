@@ -252,7 +252,7 @@ def read_stamped_csv(path: Path, columns: int, seconds: bool = False) -> tuple[I
         raise DatasetError(f"{path}: no data lines")
     out_t = np.asarray(stamps, dtype=np.int64)
     check_increasing(out_t, path, lines)
-    return out_t, np.asarray(values, dtype=np.float64).reshape(-1, columns - 1)
+    return out_t, np.asarray(values, dtype=np.float64).reshape(len(stamps), columns - 1)
 
 
 def read_yaml(path: Path) -> dict[str, Any]:
@@ -367,12 +367,18 @@ def camera_twist(
     ok_k[1:-1] = (h0 <= max_gap_s) & (h1 <= max_gap_s)
     ts = (np.asarray(stamps_ns, dtype=np.int64) - track.stamps_ns[0]) * 1e-9
     k = np.clip(np.searchsorted(t, ts, side="right") - 1, 0, k_count - 2)
-    valid = (ts >= t[0]) & (ts <= t[-1]) & ok_k[k] & ok_k[k + 1]
+    a1 = np.clip((ts - t[k]) / np.maximum(t[k + 1] - t[k], 1e-12), 0.0, 1.0)
+    # a sample with zero weight (an image stamp exactly on a pose) need not be valid
+    valid = (ts >= t[0]) & (ts <= t[-1]) & (ok_k[k] | (a1 == 1)) & (ok_k[k + 1] | (a1 == 0))
     valid &= (t[k + 1] - t[k]) <= max_gap_s
-    a = np.where(valid, (ts - t[k]) / np.maximum(t[k + 1] - t[k], 1e-12), 0.0)
-    a = np.clip(a, 0.0, 1.0)[:, None]
-    w_out = (1 - a) * w_c[k] + a * w_c[k + 1]
-    v_out_w = (1 - a) * v_w[k] + a * v_w[k + 1]
+    a = a1[:, None]
+
+    def mix(x: F64) -> F64:
+        lo, hi = np.nan_to_num(x[k]), np.nan_to_num(x[k + 1])
+        return np.where(a == 0, lo, np.where(a == 1, hi, (1 - a) * lo + a * hi))
+
+    w_out = mix(w_c)
+    v_out_w = mix(v_w)
     rel = so3_log(np.swapaxes(r_wc[k], 1, 2) @ r_wc[k + 1])
     r_t = r_wc[k] @ so3_exp(a * rel)
     v_out = np.einsum("kji,kj->ki", r_t, v_out_w)

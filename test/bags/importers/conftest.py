@@ -201,25 +201,25 @@ def kitti_folder(tmp_path_factory: pytest.TempPathFactory) -> Folder:
     return write_kitti(tmp_path_factory.mktemp("kitti") / "00")
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def asl_writer() -> Callable[..., Folder]:
     """write_asl as a fixture (a fresh folder to break)."""
     return write_asl
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def kitti_writer() -> Callable[..., Folder]:
     """write_kitti as a fixture (a fresh folder to break)."""
     return write_kitti
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def bound() -> Callable[[Simulation, float, bool], tuple[float, float]]:
     """twist_error_bound as a fixture."""
     return twist_error_bound
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def shared() -> Callable[[str], Path]:
     """shared_recording as a fixture."""
     return shared_recording
