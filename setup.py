@@ -15,6 +15,7 @@ CONSOLE_SCRIPTS = [
     "owl_bench = owl_ros.tools.bench:main",
     "owl_latency = owl_ros.tools.latency:main",
     "owl_soak = owl_ros.tools.soak:main",
+    "owl_batch = owl_ros.tools.batch:main",
     "owl_make_bag = bags.cli.make_bag:main",
     "owl_replay = bags.cli.replay:main",
     "owl_record = bags.cli.record:main",

@@ -31,3 +31,7 @@ class DemoError(ToolError):
 
 class LiveNodeError(ToolError):
     """owl_node in its own process did not come up or did not stop (one line, with its log)."""
+
+
+class BatchError(ToolError):
+    """owl_batch: a bag list or option cannot be run (one line naming it)."""

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bags.importers.cli import main
+from bags.cli.importers.cli import main
 from bags.io import BagReader
 from owl_core.geometry import quat_xyzw_to_matrix
 
@@ -225,7 +225,7 @@ def _mean_gyro_over_images(bag: Path) -> np.ndarray:
 def test_euroc_still_no_heading_and_bias_settles_on_the_mean_gyro(
     shared: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from owl_ros.eval import read_estimates
+    from owl_ros.tools.evaluate import read_estimates
 
     root = shared("euroc_v101_still")
     bag = tmp_path / "euroc"
@@ -250,7 +250,7 @@ def test_euroc_still_no_heading_and_bias_settles_on_the_mean_gyro(
 def test_realsense_walk_extrinsic_and_points(
     shared: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from bags.importers.common import read_yaml, transform
+    from bags.cli.importers.common import read_yaml, transform
 
     root = shared("realsense_walk")
     bag = tmp_path / "walk"

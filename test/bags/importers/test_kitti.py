@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bags.importers.common import ImportOptions, write_dataset
-from bags.importers.kitti import read_kitti
+from bags.cli.importers.common import ImportOptions, write_dataset
+from bags.cli.importers.kitti import read_kitti
 from bags.io import BagReader
 
 
@@ -59,8 +59,8 @@ def test_calibration_times_and_imu(kitti_folder: Any, kitti_bag: Path) -> None:
 
 
 def test_process_and_eval_on_the_import(kitti_bag: Path, tmp_path: Path) -> None:
-    from owl_ros.eval import evaluate
     from owl_ros.process import ProcessOptions, process_bag
+    from owl_ros.tools.evaluate import evaluate
 
     out = tmp_path / "result"
     process_bag(kitti_bag, out, ProcessOptions())

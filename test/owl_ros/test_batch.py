@@ -1,0 +1,83 @@
+"""owl_batch on a local Ray (one instance, 2 CPUs): three small bags and a broken one."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from bags.cli.make_bag import write_bag
+from bags.sim import scenarios
+from bags.sim.scenarios import SimOptions
+from owl_ros.tools.batch import find_bags, main
+from owl_ros.tools.evaluate import evaluate, summarize
+
+
+def _descendants(pid: int) -> set[int]:
+    """Pids of every live process below ``pid`` (from /proc)."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat.rsplit(")", 1)[1].split()
+        if fields[0] == "Z":
+            continue
+        children.setdefault(int(fields[1]), []).append(int(entry.name))
+    out: set[int] = set()
+    todo = [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            if c not in out:
+                out.add(c)
+                todo.append(c)
+    return out
+
+
+@pytest.mark.slow
+def test_batch_table_equals_per_bag_eval_and_a_broken_bag_is_reported(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    folder = tmp_path / "bags"
+    folder.mkdir()
+    opts = SimOptions(seconds=0.6, rate_hz=30.0, width=320, height=240)
+    for name in ("cube", "street", "receding"):
+        write_bag(scenarios.get(name).simulate(opts), folder / name)
+    (folder / "broken").mkdir()
+    (folder / "broken" / "metadata.yaml").write_text("rosbag2_bagfile_information: [\n")
+    assert [b.name for b in find_bags([str(folder)])] == ["broken", "cube", "receding", "street"]
+    before = _descendants(os.getpid())
+    out = tmp_path / "results"
+    report_path = tmp_path / "report.json"
+    rc = main([str(folder), "-o", str(out), "--num-cpus", "2", "--json", str(report_path), "-q"])
+    assert rc == 1  # one bag failed
+    # Ray stopped everything it started
+    assert _descendants(os.getpid()) - before == set()
+    table = capsys.readouterr().out
+    report = json.loads(report_path.read_text())
+    rows = {Path(r["bag"]).name: r for r in report["bags"]}
+    broken = rows.pop("broken")
+    assert not broken["ok"] and broken["attempts"] == 2
+    assert "broken" in broken["error"] and "\n" not in broken["error"]
+    assert "broken                   FAILED  " in table
+    scores = []
+    for name, row in rows.items():
+        assert row["ok"] and row["scored"], row
+        ev = evaluate(out / name, folder / name)  # what owl_eval --json prints
+        expected = json.loads(json.dumps(ev.as_dict()))["summary"]
+        assert row["summary"] == expected  # the table's numbers are owl_eval's
+        s = expected
+        line = next(t for t in table.splitlines() if t.startswith(name))
+        assert f"{s['heading_deg_median']:.2f}/{s['heading_deg_p90']:.2f}" in line
+        assert row["frames"] == s["frames"] == 19
+        scores += ev.frames
+    pooled = summarize(scores, False)
+    for key, value in pooled.items():
+        assert report["pooled"][key] == pytest.approx(value, nan_ok=True), key
+    assert report["pooled"]["bags"] == 3
+    assert report["ray"]["cpus"] == 2
