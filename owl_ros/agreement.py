@@ -1,0 +1,175 @@
+"""OWL's heading against the OpenCV 5-point two-view heading on the same tracks of a bag.
+
+For recordings without ground truth (the handheld walk): the engine runs over the bag's
+images and gyro with the node's default parameters (the extrinsic from ``/tf_static``);
+on each frame's very tracks (``OwlEngine.last_tracks``) OpenCV's 5-point essential matrix
++ recoverPose (:mod:`owl_core.baseline`) pairs the current frame with the one ``gap``
+frames earlier. Per frame where both give a heading, the angle between them (degrees) is
+the disagreement; its median and 90th percentile are reported per gap. As a yardstick of
+the two-view estimates' own scatter on the same frames, the gyro-aided two-view heading
+(derotated with the raw gyro, translation only) is compared with the 5-point one too.
+
+``python -m owl_ros.agreement BAG [--gap 1 --gap 2 --gap 4] [--json]``
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bags.cli import OneLineErrorParser
+from bags.errors import BagError
+from bags.io import BagReader
+from owl_ros.eval import heading_error_deg
+
+PROG = "owl_agreement"
+#: gyro samples fed ahead of each image, ns (what an IMU arriving with the image gives)
+LEAD_NS = 50_000_000
+
+
+def heading_agreement(
+    bag_path: str | Path,
+    gaps: Sequence[int] = (4,),
+    image_topic: str = "/camera/image_raw",
+    info_topic: str = "/camera/camera_info",
+    imu_topic: str = "/imu/data",
+    params: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Run the engine and the 5-point baseline over a bag (see the module docstring).
+
+    Returns:
+        {"frames", "owl_headings", "per_gap": {gap: {"baseline_headings", "both",
+        "median_deg", "p90_deg", "angles_deg": [...], "gyro_vs_5pt_median_deg"}}}.
+    """
+    from rclpy.serialization import deserialize_message
+
+    from msg_adapters.camera_info import camera_info_to_model
+    from msg_adapters.image import image_to_frame
+    from msg_adapters.imu import imus_to_gyro
+    from msg_adapters.msgtypes import message_class
+    from owl_core.baseline import BaselineOptions, TwoViewBaseline
+    from owl_core.engine import OwlEngine
+    from owl_core.types import GyroSamples
+    from owl_ros.params import build_options
+    from owl_ros.process import _tf_rotation
+
+    with BagReader(bag_path) as bag:
+        transforms: list[Any] = []
+        if "/tf_static" in bag.topics:
+            for raw in bag.messages(["/tf_static"]):
+                transforms.extend(bag.deserialize(raw).transforms)
+        imu_cls = message_class("sensor_msgs/msg/Imu")
+        imus = [deserialize_message(r.data, imu_cls) for r in bag.messages([imu_topic])]
+        info = deserialize_message(
+            next(iter(bag.messages([info_topic]))).data,
+            message_class("sensor_msgs/msg/CameraInfo"),
+        )
+        camera = camera_info_to_model(info)
+        imu_frame = imus[0].header.frame_id if imus else None
+        rotation = _tf_rotation(transforms, imu_frame, info.header.frame_id)
+        values = {} if rotation is None else {"camera_to_imu_rotation_xyzw": list(rotation)}
+        values.update(params or {})
+        engine = OwlEngine(camera, build_options(values).engine)
+        gyro = imus_to_gyro(imus)
+        fed = 0
+        baselines = {
+            g: TwoViewBaseline(camera, BaselineOptions(method="essential", gap_frames=g))
+            for g in gaps
+        }
+        buffer = engine.gyro
+
+        def rotation(t0: int, t1: int) -> Any:
+            return buffer.relative_rotation(t0, t1) if buffer.covers(t0, t1) else None
+
+        gyro_baselines = {
+            g: TwoViewBaseline(camera, BaselineOptions(method="gyro", gap_frames=g), rotation)
+            for g in gaps
+        }
+        angles: dict[int, list[float]] = {g: [] for g in gaps}
+        two_view: dict[int, list[float]] = {g: [] for g in gaps}
+        base_count = dict.fromkeys(gaps, 0)
+        frames = owl_count = 0
+        img_cls = message_class("sensor_msgs/msg/Image")
+        for raw in bag.messages([image_topic]):
+            frame = image_to_frame(deserialize_message(raw.data, img_cls))
+            # feed the gyro as the node gets it: up to the image (+ the IMU's lead), not all
+            # at once (the gyro buffer keeps a bounded window)
+            upto = int(np.searchsorted(gyro.stamp_ns, frame.stamp_ns + LEAD_NS, side="right"))
+            if upto > fed:
+                engine.add_gyro(
+                    GyroSamples(gyro.stamp_ns[fed:upto], gyro.angular_velocity[fed:upto])
+                )
+                fed = upto
+            res = engine.process(frame)
+            frames += 1
+            owl_count += res.heading is not None
+            tracks = engine.last_tracks
+            if tracks is None:
+                continue
+            for g, base in baselines.items():
+                out = base.process(tracks)
+                if out.heading is None:
+                    continue
+                base_count[g] += 1
+                if res.heading is not None:
+                    angles[g].append(float(heading_error_deg(res.heading, out.heading)))
+                    other = gyro_baselines[g].process(tracks)
+                    if other.heading is not None:
+                        two_view[g].append(float(heading_error_deg(out.heading, other.heading)))
+    per_gap = {}
+    for g in gaps:
+        a = np.asarray(angles[g])
+        b = np.asarray(two_view[g])
+        per_gap[g] = {
+            "gyro_vs_5pt_median_deg": float(np.median(b)) if b.size else None,
+            "baseline_headings": base_count[g],
+            "both": int(a.size),
+            "median_deg": float(np.median(a)) if a.size else None,
+            "p90_deg": float(np.percentile(a, 90)) if a.size else None,
+            "angles_deg": a.tolist(),
+        }
+    return {"frames": frames, "owl_headings": owl_count, "per_gap": per_gap}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the exit status."""
+    p = OneLineErrorParser(prog=PROG, description=__doc__.splitlines()[0])
+    p.add_argument("bag", help="bag with images, camera_info, IMU (e.g. from owl_import)")
+    p.add_argument("--gap", type=int, action="append", default=None, help="baseline gap(s)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("-p", "--param", action="append", default=[], metavar="NAME:=VALUE")
+    args = p.parse_args(argv)
+    try:
+        from owl_ros.params import parse_value
+
+        params = {}
+        for item in args.param:
+            name, _, text = item.partition(":=")
+            params[name] = parse_value(name, text)
+        out = heading_agreement(args.bag, tuple(args.gap or (1, 2, 4)), params=params)
+    except (BagError, StopIteration, ValueError) as err:
+        print(f"{PROG}: error: {' '.join(str(err).split()) or 'empty topic'}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    print(f"{PROG}: {args.bag}: {out['frames']} frames, OWL headings on {out['owl_headings']}")
+    for g, r in out["per_gap"].items():
+        med, p90 = r["median_deg"], r["p90_deg"]
+        text = "n/a" if med is None else f"{med:.2f} / {p90:.2f} deg"
+        yard = r["gyro_vs_5pt_median_deg"]
+        print(
+            f"  5-point gap {g}: headings on {r['baseline_headings']}, both on {r['both']}, "
+            f"OWL vs 5-point median / p90 {text}; gyro-aided two-view vs 5-point median "
+            + ("n/a" if yard is None else f"{yard:.2f} deg")
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,43 @@
+"""OWL's heading against the 5-point heading on the same tracks of the real handheld walk."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from bags.importers.cli import main as import_main
+from owl_ros.agreement import heading_agreement
+
+SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "realsense_walk"
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured on the first 5 s: OWL vs 5-point median 90 deg against 32 deg between "
+    "the two two-view estimates (the engine's gyro-bias estimate on the walk grows to "
+    "about 0.07 rad/s and tilts the heading; with estimate_bias false the full clip gives "
+    "39 deg): OWL does not agree with the 5-point baseline here yet",
+)
+def test_owl_heading_agrees_with_the_5_point_heading_on_the_walk(tmp_path: Path) -> None:
+    """The bound: the two-view estimates' own scatter on the same frames.
+
+    There is no ground truth; the 5-point heading's error on these tracks is not known
+    either, but the gyro-aided two-view heading (independent of the engine: the raw gyro,
+    translation only) measures it: their median disagreement is the spread a second
+    estimator of the same heading shows here. OWL agreeing with the 5-point heading no worse
+    than that is the bound; at gap 4 (0.24 s at 17 Hz, the gap with most 5-point headings).
+    """
+    if not (SHARED / "mav0").is_dir():
+        msg = f"shared recording realsense_walk not found ({SHARED})"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg)
+        pytest.skip(msg)
+    bag = tmp_path / "walk"
+    assert import_main([str(SHARED), str(bag), "--seconds", "5", "-q"]) == 0
+    out = heading_agreement(bag, (4,))
+    r = out["per_gap"][4]
+    assert r["both"] >= 40  # enough frames to judge
+    assert r["median_deg"] <= r["gyro_vs_5pt_median_deg"], r
