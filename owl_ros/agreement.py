@@ -43,7 +43,7 @@ def heading_agreement(
     """Run the engine and the 5-point baseline over a bag (see the module docstring).
 
     Returns:
-        {"frames", "owl_headings", "per_gap": {gap: {"baseline_headings", "both",
+        {"frames", "owl_headings", "final_gyro_bias" (IMU frame, rad/s), "per_gap": {gap: {"baseline_headings", "both",
         "median_deg", "p90_deg", "angles_deg": [...], "gyro_vs_5pt_median_deg"}}}.
     """
     from rclpy.serialization import deserialize_message
@@ -133,7 +133,12 @@ def heading_agreement(
             "p90_deg": float(np.percentile(a, 90)) if a.size else None,
             "angles_deg": a.tolist(),
         }
-    return {"frames": frames, "owl_headings": owl_count, "per_gap": per_gap}
+    return {
+        "frames": frames,
+        "owl_headings": owl_count,
+        "final_gyro_bias": [float(v) for v in engine.gyro_bias],
+        "per_gap": per_gap,
+    }
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -158,7 +163,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.json:
         print(json.dumps(out))
         return 0
-    print(f"{PROG}: {args.bag}: {out['frames']} frames, OWL headings on {out['owl_headings']}")
+    print(
+        f"{PROG}: {args.bag}: {out['frames']} frames, OWL headings on {out['owl_headings']}, "
+        f"final gyro bias estimate {np.round(out['final_gyro_bias'], 4).tolist()} rad/s"
+    )
     for g, r in out["per_gap"].items():
         med, p90 = r["median_deg"], r["p90_deg"]
         text = "n/a" if med is None else f"{med:.2f} / {p90:.2f} deg"
