@@ -43,8 +43,9 @@ def heading_agreement(
     """Run the engine and the 5-point baseline over a bag (see the module docstring).
 
     Returns:
-        {"frames", "owl_headings", "final_gyro_bias" (IMU frame, rad/s), "per_gap": {gap: {"baseline_headings", "both",
-        "median_deg", "p90_deg", "angles_deg": [...], "gyro_vs_5pt_median_deg"}}}.
+        {"frames", "owl_headings", "final_gyro_bias" (IMU frame, rad/s), "per_gap": {gap:
+        {"baseline_headings", "both", "median_deg", "p90_deg", "angles_deg": [...],
+        "gyro_vs_5pt_median_deg"}}}.
     """
     from rclpy.serialization import deserialize_message
 
