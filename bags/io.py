@@ -36,7 +36,6 @@ recover=True)`` then reads the complete messages before the damage),
 from __future__ import annotations
 
 import functools
-import mmap
 import os
 import shutil
 import struct
@@ -439,25 +438,37 @@ def fill_checksums(mcap_path: Path) -> int:
         CorruptBagError: a record runs past the end of the file.
     """
     chunks = 0
-    with mcap_path.open("r+b") as f, mmap.mmap(f.fileno(), 0) as m, memoryview(m) as view:
-        pos, end = len(MCAP_MAGIC), len(view) - len(MCAP_MAGIC)
+    # One sequential pass, one record in memory at a time (not a mapping of the whole file:
+    # its pages would count as resident memory for a multi-GB bag).
+    with mcap_path.open("r+b") as f:
+        size_total = f.seek(0, os.SEEK_END)
+        f.seek(0)
+        magic = f.read(len(MCAP_MAGIC))
+        data_crc = zlib.crc32(magic)
+        pos, end = len(MCAP_MAGIC), size_total - len(MCAP_MAGIC)
         while pos < end:
-            op, length = view[pos], int.from_bytes(view[pos + 1 : pos + 9], "little")
+            head = f.read(9)
+            op, length = head[0], int.from_bytes(head[1:9], "little")
             body = pos + 9
             if body + length > end:
                 msg = f"{mcap_path}: record at byte {pos} runs past the end of the file"
                 raise CorruptBagError(msg)
             if op == _OP_DATA_END:
-                view[body : body + 4] = struct.pack("<I", zlib.crc32(view[:pos]))
+                f.seek(body)
+                f.write(struct.pack("<I", data_crc))
                 break
+            record = bytearray(f.read(length))
             if op == _OP_CHUNK:
                 # start u64, end u64, uncompressed size u64, crc u32, compression, records
-                name_len = int.from_bytes(view[body + 28 : body + 32], "little")
+                name_len = int.from_bytes(record[28:32], "little")
                 if name_len == 0:  # uncompressed: BagWriter writes no other kind
-                    size = int.from_bytes(view[body + 32 : body + 40], "little")
-                    crc = zlib.crc32(view[body + 40 : body + 40 + size])
-                    view[body + 24 : body + 28] = struct.pack("<I", crc)
+                    size = int.from_bytes(record[32:40], "little")
+                    record[24:28] = struct.pack("<I", zlib.crc32(record[40 : 40 + size]))
+                    f.seek(body + 24)
+                    f.write(record[24:28])
+                    f.seek(body + length)
                     chunks += 1
+            data_crc = zlib.crc32(record, zlib.crc32(head, data_crc))
             pos = body + length
     return chunks
 
