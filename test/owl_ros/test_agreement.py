@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from bags.importers.cli import main as import_main
-from owl_ros.agreement import heading_agreement
+from bags.cli.importers.cli import main as import_main
+from owl_ros.tools.agreement import heading_agreement
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "realsense_walk"
 

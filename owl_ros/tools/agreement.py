@@ -9,7 +9,7 @@ the disagreement; its median and 90th percentile are reported per gap. As a yard
 the two-view estimates' own scatter on the same frames, the gyro-aided two-view heading
 (derotated with the raw gyro, translation only) is compared with the 5-point one too.
 
-``python -m owl_ros.agreement BAG [--gap 1 --gap 2 --gap 4] [--json]``
+``python -m owl_ros.tools.agreement BAG [--gap 1 --gap 2 --gap 4] [--json]``
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import numpy as np
 from bags.cli import OneLineErrorParser
 from bags.errors import BagError
 from bags.io import BagReader
-from owl_ros.eval import heading_error_deg
+from owl_ros.tools.evaluate import heading_error_deg
 
 PROG = "owl_agreement"
 #: gyro samples fed ahead of each image, ns (what an IMU arriving with the image gives)
@@ -57,7 +57,7 @@ def heading_agreement(
     from owl_core.engine import OwlEngine
     from owl_core.types import GyroSamples
     from owl_ros.params import build_options
-    from owl_ros.process import _tf_rotation
+    from owl_ros.process import tf_rotation
 
     with BagReader(bag_path) as bag:
         transforms: list[Any] = []
@@ -72,7 +72,7 @@ def heading_agreement(
         )
         camera = camera_info_to_model(info)
         imu_frame = imus[0].header.frame_id if imus else None
-        rotation = _tf_rotation(transforms, imu_frame, info.header.frame_id)
+        rotation = tf_rotation(transforms, imu_frame, info.header.frame_id)
         values = {} if rotation is None else {"camera_to_imu_rotation_xyzw": list(rotation)}
         values.update(params or {})
         engine = OwlEngine(camera, build_options(values).engine)
