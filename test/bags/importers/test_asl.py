@@ -129,3 +129,45 @@ def test_cli_prints_the_rotation_line(
     assert quat_xyzw_to_matrix(q) == pytest.approx(asl_folder.sim.R_bc, abs=1e-8)
     with BagReader(out) as bag:
         assert bag.topics["/camera/image_raw"].count == 6  # 0, 0.1, ... 0.5 s
+
+
+def test_tum_vi_mocap_poses_are_differentiated(
+    asl_folder: Any, tmp_path: Path, bound: Any
+) -> None:
+    """TUM-VI: mocap0 poses only (no velocity, no bias): velocity from the 3-point rule."""
+    import shutil
+
+    from bags.cli.importers.common import read_yaml, transform
+    from owl_core.geometry import matrix_to_quat_xyzw
+
+    sim = asl_folder.sim
+    root = tmp_path / "tumvi"
+    shutil.copytree(asl_folder.root, root)
+    shutil.rmtree(root / "mav0" / "state_groundtruth_estimate0")
+    _, lever = transform(read_yaml(root / "mav0" / "cam0" / "sensor.yaml")["T_BS"], root)
+    h = 1.0 / 120.0
+    t = np.arange(-0.05 + 0.0021, sim.options.seconds + 0.05, h)
+    st = sim.trajectory.state(t)
+    p_wb = st.position - np.einsum("kij,j->ki", st.R_wb, lever)
+    q = matrix_to_quat_xyzw(st.R_wb)
+    (root / "mav0" / "mocap0").mkdir()
+    rows = ["#timestamp [ns],p_RS_R_x,p_RS_R_y,p_RS_R_z,q_RS_w,q_RS_x,q_RS_y,q_RS_z"]
+    for i, ti in enumerate(t):
+        vals = (*p_wb[i], q[i, 3], q[i, 0], q[i, 1], q[i, 2])
+        stamp = int(sim.options.start_ns) + round(ti * 1e9)
+        rows.append(f"{stamp}," + ",".join(f"{v:.17g}" for v in vals))
+    (root / "mav0" / "mocap0" / "data.csv").write_text("\n".join(rows) + "\n")
+    out = tmp_path / "bag"
+    write_dataset(read_asl(root), out, ImportOptions())
+    twists = _by_stamp(out, "/ground_truth/twist")
+    assert len(twists) == asl_folder.stamps_ns.size
+    with BagReader(out) as bag:
+        assert "/ground_truth/gyro_bias" not in bag.topics
+    lin_bound, ang_bound = bound(sim, h, True)
+    for ns, msg in twists.items():
+        v, w = sim.twist(sim.time_of(ns))
+        tw = msg.twist
+        lin = np.array([tw.linear.x, tw.linear.y, tw.linear.z])
+        ang = np.array([tw.angular.x, tw.angular.y, tw.angular.z])
+        assert np.linalg.norm(lin - v) <= lin_bound + 1e-9
+        assert np.linalg.norm(ang - w) <= ang_bound + 1e-9
