@@ -171,3 +171,19 @@ def test_tum_vi_mocap_poses_are_differentiated(
         ang = np.array([tw.angular.x, tw.angular.y, tw.angular.z])
         assert np.linalg.norm(lin - v) <= lin_bound + 1e-9
         assert np.linalg.norm(ang - w) <= ang_bound + 1e-9
+
+
+def test_scale_resizes_images_and_adjusts_the_intrinsics(asl_folder: Any, tmp_path: Path) -> None:
+    out = tmp_path / "half"
+    assert main([str(asl_folder.root), str(out), "--scale", "0.5", "--seconds", "0.2", "-q"]) == 0
+    k = asl_folder.sim.camera.K
+    with BagReader(out) as bag:
+        info = bag.deserialize(next(iter(bag.messages(["/camera/camera_info"]))))
+        img = bag.deserialize(next(iter(bag.messages(["/camera/image_raw"]))))
+    assert (img.width, img.height, info.width, info.height) == (160, 120, 160, 120)
+    k2 = np.asarray(info.k).reshape(3, 3)
+    assert k2[0, 0] == pytest.approx(0.5 * k[0, 0]) and k2[1, 1] == pytest.approx(0.5 * k[1, 1])
+    # pixel centres: u' = (u + 0.5) s - 0.5
+    assert k2[0, 2] == pytest.approx((k[0, 2] + 0.5) * 0.5 - 0.5)
+    assert k2[1, 2] == pytest.approx((k[1, 2] + 0.5) * 0.5 - 0.5)
+    assert list(info.d) == pytest.approx([*asl_folder.sim.camera.D[:4], 0.0])

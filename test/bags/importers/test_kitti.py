@@ -71,3 +71,28 @@ def test_process_and_eval_on_the_import(kitti_bag: Path, tmp_path: Path) -> None
     assert s["range_scored"] is False and s["bias_scored"] is False
     assert s["bias_error_final_rad_s"] is None
     assert any("bias error not scored" in n for n in ev.notes)
+
+
+def test_colour_folder_uses_p2_and_its_baseline(kitti_folder: Any, tmp_path: Path) -> None:
+    import shutil
+
+    import cv2
+
+    root = tmp_path / "00"
+    shutil.copytree(kitti_folder.root, root)
+    (root / "image_0").rename(root / "image_2")
+    for png in (root / "image_2").iterdir():  # a colour image, as KITTI's image_2
+        grey = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(png), cv2.merge([grey, grey, grey]))
+    k = kitti_folder.sim.camera.K
+    lines = (root / "calib.txt").read_text().splitlines()
+    p2 = np.c_[k, k @ np.array([0.06, 0.0, 0.0])]  # camera 2 sits 6 cm to the left of 0
+    lines[2] = "P2: " + " ".join(f"{v:.12e}" for v in p2.ravel())
+    (root / "calib.txt").write_text("\n".join(lines) + "\n")
+    ds = read_kitti(root, colour=True)
+    assert ds.t_xc == pytest.approx([-0.06, 0.0, 0.0])
+    out = tmp_path / "bag"
+    write_dataset(ds, out, ImportOptions(seconds=0.3))
+    with BagReader(out) as bag:
+        img = bag.deserialize(next(iter(bag.messages(["/camera/image_raw"]))))
+    assert img.encoding == "mono8" and (img.width, img.height) == (320, 240)
