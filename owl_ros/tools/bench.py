@@ -90,6 +90,9 @@ class Profile:
     features: int
     cases: tuple[Case, ...]
     rate_hz: float = 30.0
+    #: "cpu": stage times are this thread's CPU time (time.thread_time, what the work
+    #: costs, independent of other load on the machine); "wall": time.perf_counter
+    clock: str = "cpu"
 
 
 FULL = Profile(
@@ -256,6 +259,8 @@ def run_case(
             max_features=profile.features,
         ),
     )
+    clock = time.thread_time if profile.clock == "cpu" else time.perf_counter
+    engine.clock = clock
     engine.add_gyro(sim.gyro_samples())
     gyro = engine.gyro
 
@@ -272,6 +277,8 @@ def run_case(
     run.has_mask = frames.mask is not None
     run.estimate_s = dict.fromkeys(METHODS, 0.0)
     run.baseline_results = {m: [] for m in baselines}
+    for base in baselines.values():
+        base.clock = clock
     n_tracks = 0
     for k in range(frames.stamps_ns.size):
         truth = frames.truth(k)
@@ -392,6 +399,7 @@ def run_bench(
         "image_size": f"{profile.width}x{profile.height}",
         "features": profile.features,
         "seconds_per_case": profile.seconds,
+        "clock": profile.clock,
         "features_per_frame": float(np.mean([r.tracks_per_frame for r in runs])),
         "owl_fps": total_frames / (track + est["owl"]),
         "baseline_fps": total_frames / (track + est["cv-5pt"]),
@@ -467,7 +475,8 @@ def report_lines(doc: dict[str, Any]) -> list[str]:
     lines = [
         f"{PROG} ({doc['profile']}): {doc['image_size']}, {doc['features']} features requested "
         f"({doc['features_per_frame']:.0f} tracked/frame), {doc['seconds_per_case']:g} s per "
-        f"case at 30 Hz, one thread, {doc['machine']['cpu']}",
+        f"case at 30 Hz, one thread, {doc['machine']['cpu']}, "
+        f"{'CPU' if doc.get('clock', 'wall') == 'cpu' else 'wall'} time",
         "",
         "accuracy per case (heading error deg median/p90; r/|t| relative error median; "
         "moving P/R):",
@@ -563,6 +572,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--features", type=int, default=None, help="override features requested per frame"
     )
+    p.add_argument(
+        "--clock",
+        choices=("cpu", "wall"),
+        default="cpu",
+        help="stage timers: this thread's CPU time (default; independent of other load) "
+        "or wall time",
+    )
     p.add_argument("--cache-dir", default="results/cache", help="rendered-frame cache")
     p.add_argument("--no-cache", action="store_true", help="render without reading/writing")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -590,7 +606,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for var in THREAD_VARS:
         os.environ.setdefault(var, "1")
     args = build_parser().parse_args(argv)
-    profile = QUICK if args.quick else FULL
+    profile = replace(QUICK if args.quick else FULL, clock=args.clock)
     try:
         if args.cases:
             profile = replace(profile, cases=_parse_cases(args.cases))
