@@ -77,6 +77,11 @@ class TrackerOptions:
         lk_window_px: Lucas-Kanade window side, pixels (odd, >= 5).
         lk_levels: pyramid levels above the full image (0 = no pyramid). The
             reach without a prediction is about ``lk_window_px / 2 * 2**lk_levels``.
+        lk_predicted_levels: pyramid levels of the forward pass when a prediction is
+            given (the gyro removed the rotation; what is left is the translational
+            flow). Points that fail a check (LK, forward-backward, patch) are tracked
+            again with ``lk_levels``. ``>= lk_levels`` tracks every point with the full
+            pyramid.
         lk_backward_levels: pyramid levels of the backward (forward-backward check)
             pass (capped at ``lk_levels``). It starts at the forward start, where a
             consistent track returns to within ``fb_threshold_px``, so it needs no
@@ -112,6 +117,7 @@ class TrackerOptions:
     border_px: float = 8.0
     lk_window_px: int = 15
     lk_levels: int = 3
+    lk_predicted_levels: int = 1
     lk_backward_levels: int = 1
     lk_max_iterations: int = 30
     lk_epsilon_px: float = 0.01
@@ -131,6 +137,7 @@ class TrackerOptions:
             "block_size": (self.block_size, 3),
             "lk_window_px": (self.lk_window_px, 5),
             "lk_levels": (self.lk_levels, 0),
+            "lk_predicted_levels": (self.lk_predicted_levels, 0),
             "lk_backward_levels": (self.lk_backward_levels, 0),
             "lk_max_iterations": (self.lk_max_iterations, 1),
             "history_len": (self.history_len, 2),
@@ -380,6 +387,39 @@ class FeatureTracker:
             ok = np.all(np.isfinite(guess), axis=1)
             init[ok] = guess[ok]
         p0 = prev.astype(np.float32).reshape(-1, 1, 2)
+        p_init = init.astype(np.float32).reshape(-1, 1, 2)
+        full = opts.lk_levels
+        if predict is None or opts.lk_predicted_levels >= full:
+            return self._lk_pass(prev_img, cur_img, prev, p0, p_init, full)
+        # A gyro-predicted start leaves only the translational flow to find: a shallow
+        # pyramid reaches it for most points; those that fail any check are tracked
+        # again from the same start with the full pyramid (VINS-Fusion does the same).
+        new_pos, reason = self._lk_pass(
+            prev_img, cur_img, prev, p0, p_init, opts.lk_predicted_levels
+        )
+        retry = np.flatnonzero((reason >= 1) & (reason <= 3))
+        if retry.size:
+            pos2, reason2 = self._lk_pass(
+                prev_img, cur_img, prev[retry], p0[retry], p_init[retry], full
+            )
+            new_pos[retry] = pos2
+            reason[retry] = reason2
+        return new_pos, reason
+
+    def _lk_pass(
+        self,
+        prev_img: npt.NDArray[np.uint8],
+        cur_img: npt.NDArray[np.uint8],
+        prev: FloatArray,
+        p0: npt.NDArray[np.float32],
+        p_init: npt.NDArray[np.float32],
+        levels: int,
+    ) -> tuple[FloatArray, npt.NDArray[np.int8]]:
+        """One forward LK pass (``levels`` pyramid levels) from ``prev`` (M, 2) (``p0``:
+        the same as (M, 1, 2) float32) starting at ``p_init`` (M, 1, 2) float32, with the
+        backward check; new positions (M, 2) and reason codes (M,) as :meth:`_flow`."""
+        opts = self.options
+        m = prev.shape[0]
         criteria = (
             cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
             opts.lk_max_iterations,
@@ -396,9 +436,9 @@ class FeatureTracker:
                 prev_img,
                 cur_img,
                 p0,
-                init.astype(np.float32).reshape(-1, 1, 2),
+                p_init.copy(),  # OpenCV writes its result into this array
                 winSize=win,
-                maxLevel=opts.lk_levels,
+                maxLevel=levels,
                 criteria=criteria,
                 flags=flags,
                 minEigThreshold=opts.lk_min_eigenvalue,
@@ -412,7 +452,7 @@ class FeatureTracker:
                 p1,
                 p0.copy(),
                 winSize=win,
-                maxLevel=min(opts.lk_backward_levels, opts.lk_levels),
+                maxLevel=min(opts.lk_backward_levels, levels),
                 criteria=criteria,
                 flags=flags,
                 minEigThreshold=opts.lk_min_eigenvalue,

@@ -137,6 +137,33 @@ def test_fast_rotation_needs_prediction() -> None:
     assert results[False] < 0.2 * results[True]
 
 
+def test_shallow_predicted_pass_falls_back_to_the_full_pyramid() -> None:
+    # A prediction that is 18 px off (beyond the ~7 * 2 = 14 px reach of the 1-level
+    # predicted pass, within the ~56 px of 3 levels): the points fail the shallow pass
+    # and are tracked again with the full pyramid: every track of a full-pyramid run is
+    # kept; a 1-level pyramid alone loses most of them. The price: a shallow pass can lock
+    # onto a wrong, round-trip-consistent match of this repetitive texture (2 of ~260).
+    d = np.array([18.0, -3.0])
+    kept = {}
+    for name, opts in (
+        ("two-stage", TrackerOptions(max_features=300, lk_predicted_levels=1)),
+        ("full", TrackerOptions(max_features=300, lk_predicted_levels=3)),
+        ("shallow only", TrackerOptions(max_features=300, lk_levels=1)),
+    ):
+        tracker = FeatureTracker(opts)
+        first = tracker.track(IMAGE0, 0)
+        second = tracker.track(_shifted(d), 1, predict=lambda p: p)
+        old = _tracked(second)
+        err = np.linalg.norm(second.pixels[old] - second.history[old, 1] - d, axis=1)
+        kept[name] = second.ids[old]
+        if name != "shallow only":
+            assert np.count_nonzero(old) > 0.75 * first.num_tracks
+            assert np.count_nonzero(err > 0.1) <= (0.01 * err.size if name == "two-stage" else 0)
+    assert np.all(np.isin(kept["full"], kept["two-stage"]))
+    assert kept["two-stage"].size <= 1.02 * kept["full"].size
+    assert kept["shallow only"].size < 0.5 * kept["full"].size
+
+
 def test_backward_pass_needs_no_pyramid_reach() -> None:
     # The backward pass starts where the forward pass started: a 16 px shift (beyond
     # the ~7 px reach of one level) passes the check with 0 backward levels, and the
