@@ -12,6 +12,11 @@ rate the node keeps up with. CPU (all threads of the node process) and RSS come 
 
     python -m owl_ros.tools.latency --width 640 --height 480 --rate 30 --seconds 10
     python -m owl_ros.tools.latency --speed 1 1.5 2 3    # 30, 45, 60, 90 Hz input
+    python -m owl_ros.tools.latency --case vga30 --case vga60 --case hd30 --runs 3
+
+``--case`` selects a standard input (size, rate, features) and its real-time targets
+(:data:`CASES`); each run's line says which targets it meets, and with ``--runs N`` a last
+line per case gives the medians over the runs.
 
 ``measure(...)`` returns a :class:`Measurement` for reuse by the benchmark.
 """
@@ -34,6 +39,34 @@ import numpy as np
 from owl_ros.tools.live import LiveNode
 
 PROG = "owl_latency"
+
+
+@dataclass(frozen=True)
+class LatencyCase:
+    """A standard input of the live node and the targets it should meet.
+
+    Attributes:
+        width, height: image size, px. rate_hz: camera rate, Hz. max_features: count.
+        min_kept_up: fraction of frames that must get a cloud.
+        max_p95_ms: latency p95 bound, ms (None: no bound).
+        max_cpu_percent: node CPU bound, % of one core (None: no bound).
+    """
+
+    width: int
+    height: int
+    rate_hz: float
+    max_features: int
+    min_kept_up: float
+    max_p95_ms: float | None = None
+    max_cpu_percent: float | None = None
+
+
+#: The standard inputs: VGA at 30 and 60 Hz, 720p at 30 Hz (a common robot camera).
+CASES = {
+    "vga30": LatencyCase(640, 480, 30.0, 1000, 0.995, 33.0, 60.0),
+    "vga60": LatencyCase(640, 480, 60.0, 1000, 0.99, 25.0),
+    "hd30": LatencyCase(1280, 720, 30.0, 1000, 0.99),
+}
 
 
 @dataclass(frozen=True)
@@ -255,8 +288,50 @@ def measure(
     )
 
 
+def meets(case: LatencyCase, m: Measurement) -> dict[str, bool]:
+    """Which of ``case``'s targets the measurement ``m`` meets (name -> bool)."""
+    out = {"kept_up": m.kept_up >= case.min_kept_up}
+    if case.max_p95_ms is not None:
+        out["latency_p95"] = m.latency_ms_p95 <= case.max_p95_ms
+    if case.max_cpu_percent is not None:
+        out["cpu"] = m.cpu_percent <= case.max_cpu_percent
+    return out
+
+
+def median_measurement(runs: Sequence[Measurement]) -> dict[str, float]:
+    """Per-field medians of several runs of the same input (numeric fields)."""
+    rows = [asdict(m) for m in runs]
+    return {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
+
+
+def _run_case(name: str, args: argparse.Namespace, node_args: list[str]) -> None:
+    case = CASES[name]
+    clip = render_clip(args.scenario, args.clip_seconds, case.width, case.height, case.rate_hz)
+    runs = []
+    for i in range(args.runs):
+        m = measure(clip, 1.0, args.seconds, max_features=case.max_features, node_args=node_args)
+        runs.append(m)
+        print(json.dumps({"case": name, "run": i + 1, **asdict(m), "meets": meets(case, m)}))
+    if args.runs > 1:
+        med = median_measurement(runs)
+        ok = {
+            "kept_up": med["kept_up"] >= case.min_kept_up,
+            **(
+                {"latency_p95": med["latency_ms_p95"] <= case.max_p95_ms}
+                if case.max_p95_ms is not None
+                else {}
+            ),
+            **(
+                {"cpu": med["cpu_percent"] <= case.max_cpu_percent}
+                if case.max_cpu_percent is not None
+                else {}
+            ),
+        }
+        print(json.dumps({"case": name, "median_of": args.runs, **med, "meets": ok}), flush=True)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point; prints one JSON object per measured speed."""
+    """Entry point; prints one JSON object per measured speed (or case run)."""
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
     p.add_argument("--scenario", default="street")
     p.add_argument("--width", type=int, default=640)
@@ -270,7 +345,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         "-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
         help="extra owl_node parameter, repeatable",
     )  # fmt: skip
+    p.add_argument(
+        "--case",
+        action="append",
+        choices=sorted(CASES),
+        default=[],
+        help="standard input with targets (repeatable; replaces --width/--height/--rate/"
+        "--max-features/--speed): "
+        + ", ".join(f"{k} {c.width}x{c.height}@{c.rate_hz:g}Hz" for k, c in CASES.items()),
+    )
+    p.add_argument("--runs", type=int, default=1, help="runs per --case (medians printed)")
     args = p.parse_args(argv)
+    if args.runs < 1:
+        p.error(f"--runs must be >= 1, got {args.runs}")
+    if args.case:
+        node_args = [x for item in args.param for x in ("-p", item)]
+        for name in args.case:
+            _run_case(name, args, node_args)
+        return 0
     clip = render_clip(args.scenario, args.clip_seconds, args.width, args.height, args.rate)
     for speed in args.speed:
         node_args = [x for item in args.param for x in ("-p", item)]

@@ -1,0 +1,59 @@
+"""owl_latency's standard cases and their target checks (no DDS: the arithmetic only)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+
+from owl_ros.tools import latency
+from owl_ros.tools.latency import CASES, Measurement, median_measurement, meets
+
+
+def _m(**kw: float) -> Measurement:
+    base = Measurement(
+        input_rate_hz=30.0,
+        width=640,
+        height=480,
+        max_features=1000,
+        images_sent=300,
+        clouds=300,
+        kept_up=1.0,
+        latency_ms_p50=20.0,
+        latency_ms_p95=30.0,
+        latency_ms_max=40.0,
+        cpu_percent=50.0,
+        rss_mb=130.0,
+        points_per_cloud=800.0,
+    )
+    return replace(base, **kw)
+
+
+def test_cases_are_the_issue_inputs() -> None:
+    assert (CASES["vga30"].width, CASES["vga30"].height, CASES["vga30"].rate_hz) == (640, 480, 30)
+    assert (CASES["vga60"].width, CASES["vga60"].rate_hz) == (640, 60)
+    assert (CASES["hd30"].width, CASES["hd30"].height) == (1280, 720)
+
+
+def test_each_target_can_fail() -> None:
+    vga30 = CASES["vga30"]
+    assert meets(vga30, _m()) == {"kept_up": True, "latency_p95": True, "cpu": True}
+    assert meets(vga30, _m(kept_up=0.99))["kept_up"] is False
+    assert meets(vga30, _m(latency_ms_p95=33.5))["latency_p95"] is False
+    assert meets(vga30, _m(cpu_percent=61.0))["cpu"] is False
+    # hd30 has only the kept-up target
+    assert meets(CASES["hd30"], _m(latency_ms_p95=500.0, cpu_percent=190.0)) == {"kept_up": True}
+
+
+def test_median_over_runs() -> None:
+    runs = [_m(latency_ms_p95=p, kept_up=k) for p, k in ((30.0, 1.0), (50.0, 0.9), (40.0, 0.95))]
+    med = median_measurement(runs)
+    assert med["latency_ms_p95"] == 40.0
+    assert med["kept_up"] == 0.95
+
+
+def test_runs_must_be_positive(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as err:
+        latency.main(["--case", "vga30", "--runs", "0"])
+    assert err.value.code == 2
+    assert "--runs must be >= 1, got 0" in capsys.readouterr().err
