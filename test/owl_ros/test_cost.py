@@ -1,4 +1,4 @@
-"""owl_cost: one small measurement and the plot (CPU time per stage is measured, not faked)."""
+"""owl_ros.tools.cost: one small measurement and the plot (CPU time per stage is measured)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from owl_ros import cost
+from owl_ros.tools import cost
 
 
 def test_measure_and_plot(tmp_path: Path) -> None:

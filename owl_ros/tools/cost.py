@@ -1,4 +1,4 @@
-"""owl_cost: the engine's CPU time per frame against features and against image size.
+"""The engine's CPU time per frame against features and against image size.
 
 Runs :class:`owl_core.engine.OwlEngine` alone (no baselines, no DDS) over one rendered
 scenario (the ``owl_bench`` frame cache is shared) once per setting, one thread, and
@@ -6,7 +6,7 @@ times every stage in this thread's CPU time (``time.thread_time``: independent o
 load on the machine). Prints a table (``--json`` for one object) and, with ``--plot``,
 writes a PNG with ms/frame against tracked features and against megapixels.
 
-    python -m owl_ros.cost --plot docs/images/cost.png
+    python -m owl_ros.tools.cost --plot docs/images/cost.png
 """
 
 from __future__ import annotations
@@ -29,9 +29,9 @@ import cv2  # noqa: E402
 
 from owl_core.engine import EngineOptions, OwlEngine  # noqa: E402
 from owl_core.types import ImageFrame  # noqa: E402
-from owl_ros import bench  # noqa: E402
+from owl_ros.tools import bench  # noqa: E402
 
-PROG = "owl_cost"
+PROG = "python -m owl_ros.tools.cost"
 STAGES = ("track", "lk", "detect", "integrate", "heading", "looming", "total")
 
 
