@@ -2,7 +2,7 @@
 
 Runs :class:`owl_core.engine.OwlEngine` alone (no baselines, no DDS) over one rendered
 scenario (the ``owl_bench`` frame cache is shared) once per setting, one thread, and
-times every stage in this thread's CPU time (``time.thread_time``: independent of other
+times every stage in the process's CPU time (``time.process_time``: independent of other
 load on the machine). Prints a table (``--json`` for one object) and, with ``--plot``,
 writes a PNG with ms/frame against tracked features and against megapixels.
 
@@ -51,7 +51,7 @@ def measure(
             max_features=features,
         ),
     )
-    engine.clock = time.thread_time
+    engine.clock = time.process_time
     engine.add_gyro(sim.gyro_samples())
     sums = dict.fromkeys(STAGES, 0.0)
     tracks = 0
