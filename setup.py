@@ -16,6 +16,7 @@ CONSOLE_SCRIPTS = [
     "owl_latency = owl_ros.tools.latency:main",
     "owl_soak = owl_ros.tools.soak:main",
     "owl_batch = owl_ros.tools.batch:main",
+    "owl_calibrate = owl_ros.calibrate:main",
     "owl_make_bag = bags.cli.make_bag:main",
     "owl_replay = bags.cli.replay:main",
     "owl_record = bags.cli.record:main",

@@ -512,6 +512,28 @@ def _build() -> dict[str, Scenario]:
             Trajectory(polynomial_path(_H, (0, 0, 0)), _street_rotation(0.3, 0.1)),
         ),
         Scenario(
+            "pan_only",
+            "street, camera standing still and panning (yaw +-0.3 rad) about one axis only: "
+            "owl_calibrate must refuse it",
+            street,
+            Trajectory(
+                polynomial_path(_H, (0, 0, 0)),
+                sine_angles(amplitude=(0.3, 0, 0), freq_hz=(0.4, 0, 0)),
+            ),
+        ),
+        Scenario(
+            "handheld",
+            "street, camera walking forward at 1.2 m/s while turning about all three axes "
+            "(yaw +-0.25, pitch +-0.12, roll +-0.08 rad): a recording for owl_calibrate",
+            street,
+            Trajectory(
+                polynomial_path(_H, (1.2, 0.0, 0.0)),
+                sine_angles(
+                    amplitude=(0.25, 0.12, 0.08), freq_hz=(0.45, 0.7, 0.55), phase=(0, 0.5, 1)
+                ),
+            ),
+        ),
+        Scenario(
             "still",
             "street, camera not moving at all: no points, no heading expected",
             street,

@@ -30,6 +30,8 @@ def test_listing_and_unknown_name() -> None:
         "street",
         "mover",
         "rotation_only",
+        "pan_only",
+        "handheld",
         "still",
         "receding",
     }
