@@ -32,7 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bags.errors import ScenarioError
-from owl_core.geometry import quat_xyzw_to_matrix
+from owl_core.geometry import quat_xyzw_to_matrix, so3_exp
 
 F64 = npt.NDArray[np.float64]
 
@@ -309,3 +309,22 @@ def synthesize_imu(
     f_b = np.einsum("nji,nj->ni", st.R_wb, f_w)
     accel = f_b + np.asarray(options.accel_bias) + rng.normal(0.0, options.accel_noise, (n, 3))
     return ImuData(stamps, gyro, accel, st.omega_b, bias)
+
+
+def random_camera_to_imu(rng: np.random.Generator, max_tilt_deg: float = 25.0) -> F64:
+    """A random camera-to-IMU rotation (3, 3) whose camera still looks at the scene.
+
+    Any rotation about the IMU z axis (up), any roll about the optical axis, and a tilt
+    of up to ``max_tilt_deg`` about a random axis, around :data:`DEFAULT_CAMERA_TO_IMU_XYZW`
+    (for calibration tests: the images stay on the street, not on the sky).
+    """
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+
+    out: F64 = (
+        so3_exp([0.0, 0.0, rng.uniform(-math.pi, math.pi)])
+        @ so3_exp(axis * math.radians(rng.uniform(0.0, max_tilt_deg)))
+        @ quat_xyzw_to_matrix(np.asarray(DEFAULT_CAMERA_TO_IMU_XYZW, dtype=np.float64))
+        @ so3_exp([0.0, 0.0, rng.uniform(-math.pi, math.pi)])
+    )
+    return out

@@ -1,0 +1,96 @@
+"""owl_calibrate on rendered bags: images + IMU in, extrinsic, offset and bias out."""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bags import scenarios
+from bags.make_bag import write_bag
+from bags.scenarios import SimOptions
+from bags.sensors import ImuOptions, random_camera_to_imu
+from owl_core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, so3_log
+from owl_ros import calibrate
+from owl_ros.params import build_options
+from owl_ros.process import _params_file
+
+# 2 s at 30 Hz, 320x240: the shortest rotation_only recording that keeps the rotation
+# within 0.3 deg and the offset within 2 ms (10 random mounts: see the README)
+BAG = SimOptions(seconds=2.0, rate_hz=30.0, width=320, height=240, supersample=1)
+
+
+@pytest.fixture(scope="module")
+def rich_bag(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, np.ndarray, float, tuple]:
+    rng = np.random.default_rng(15)
+    r = random_camera_to_imu(rng)
+    offset = float(rng.uniform(-0.05, 0.05))
+    bias = tuple(float(b) for b in rng.uniform(-0.02, 0.02, 3))
+    imu = ImuOptions(
+        camera_to_imu_xyzw=tuple(matrix_to_quat_xyzw(r)), time_offset_s=offset, gyro_bias=bias
+    )
+    sim = scenarios.get("rotation_only").simulate(replace(BAG, imu=imu, seed=15))
+    path = tmp_path_factory.mktemp("calib") / "rich"
+    write_bag(sim, path)
+    return path, r, offset, bias
+
+
+def test_recovers_the_extrinsic_and_offset(
+    rich_bag: tuple[Path, np.ndarray, float, tuple],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    path, r, offset, bias = rich_bag
+    out = tmp_path / "calib.yaml"
+    assert calibrate.main([str(path), "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    q = re.search(r"camera_to_imu_rotation_xyzw:=\[([^\]]+)\]", text)
+    d = re.search(r"imu_time_offset:=(\S+)", text)
+    assert q and d, text
+    r_est = quat_xyzw_to_matrix(np.array([float(v) for v in q.group(1).split(",")]))
+    err_deg = math.degrees(float(np.linalg.norm(so3_log(r_est @ r.T))))
+    assert err_deg < 0.3
+    assert abs(float(d.group(1)) - offset) < 2e-3
+    assert "1-sigma" in text and "deg" in text and "ms" in text
+    # the bag's /tf_static holds the true rotation: the reported angle is the error
+    angle = re.search(r"angle to /tf_static's rotation: (\S+) deg", text)
+    assert angle and abs(float(angle.group(1)) - err_deg) < 2e-3
+    # the YAML is a params file owl_process / the node accept, with the same values
+    values = _params_file(str(out))
+    opts = build_options(values)
+    np.testing.assert_allclose(
+        quat_xyzw_to_matrix(np.array(opts.engine.camera_to_imu_rotation_xyzw)), r_est, atol=1e-5
+    )
+    assert opts.engine.imu_time_offset_s == pytest.approx(float(d.group(1)), abs=1e-5)
+    np.testing.assert_allclose(opts.engine.initial_bias_imu, bias, atol=2e-3)
+    # an existing output is not overwritten
+    before = out.read_text()
+    assert calibrate.main([str(path), "-o", str(out)]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert out.read_text() == before
+
+
+def test_one_axis_recording_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    sim = scenarios.get("pan_only").simulate(
+        replace(BAG, seconds=1.0, rate_hz=25.0, supersample=1)
+    )
+    path = tmp_path / "pan"
+    write_bag(sim, path)
+    out = tmp_path / "calib.yaml"
+    assert calibrate.main([str(path), "-o", str(out)]) == 3
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and "one axis only" in lines[0] and "tilt" in lines[0]
+    assert captured.out == "" and not out.exists()
+
+
+def test_bad_input_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert calibrate.main([str(tmp_path / "missing")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("owl_calibrate: error:")
+    assert calibrate.main([str(tmp_path), "--max-offset", "-1"]) == 2
+    assert "max_offset_s" in capsys.readouterr().err
