@@ -56,6 +56,7 @@ from scipy.optimize import least_squares
 from owl_core.camera import CameraModel
 from owl_core.errors import CalibrationError, InvalidInputError
 from owl_core.geometry import matrix_to_quat_xyzw, so3_exp, so3_log
+from owl_core.gyro import GyroBuffer
 from owl_core.tracker import FeatureTracker, TrackerOptions
 from owl_core.types import GyroSamples, ImageFrame
 
@@ -402,22 +403,23 @@ def track_rotations(
         :func:`interval_rotations` of the tracked pairs.
     """
     opts = options if options is not None else CalibrationOptions()
-    tracker = FeatureTracker(TrackerOptions(max_features=opts.max_features, history_len=2))
+    span = 1  # consecutive frames: history column 0 (current) and 1 (previous)
+    tracker = FeatureTracker(TrackerOptions(max_features=opts.max_features, history_len=span + 1))
 
     def pairs() -> Iterable[tuple[int, int, FloatArray, FloatArray]]:
         for frame in frames:
             tracks = tracker.track(frame.image, frame.stamp_ns)
             stamps = tracks.stamps_ns
-            if stamps.shape[0] < 2 or stamps[1] < 0:
+            if stamps.shape[0] <= span or stamps[span] < 0:
                 continue
             h = tracks.history
-            ok = np.all(np.isfinite(h[:, :2]), axis=(1, 2))
+            ok = np.all(np.isfinite(h[:, 0]), axis=1) & np.all(np.isfinite(h[:, span]), axis=1)
             if np.count_nonzero(ok) < opts.min_inliers:
                 continue
             e1 = camera.pixel_to_bearing(h[ok, 0])
-            e0 = camera.pixel_to_bearing(h[ok, 1])
+            e0 = camera.pixel_to_bearing(h[ok, span])
             good = np.all(np.isfinite(e0), axis=1) & np.all(np.isfinite(e1), axis=1)
-            yield int(stamps[1]), int(stamps[0]), e0[good], e1[good]
+            yield int(stamps[span]), int(stamps[0]), e0[good], e1[good]
 
     return interval_rotations(pairs(), max(camera.fx, camera.fy), opts)
 
@@ -600,15 +602,44 @@ def check_excitation(
     return rms, axes
 
 
+def _second_order(
+    sub: IntervalRotations, g: _GyroIntegral, d: float, bias: FloatArray
+) -> FloatArray:
+    """(K, 3) exact gyro rotation vector minus the integral of the rate, IMU frame, rad.
+
+    The rotation of a turning axis is not the integral of the rate (the rates do not
+    commute); the difference, second order in the interval's rotation, is computed once
+    per refine at the current estimate with the exact Magnus integration of
+    :class:`~owl_core.gyro.GyroBuffer` (one call per interval) and held fixed.
+    """
+    buf = GyroBuffer(imu_time_offset_ns=round(d * 1e9), capacity_s=1e9)
+    buf.add(GyroSamples(g.t_ns, g.w))
+    exact = np.array(
+        [
+            -so3_log(buf.relative_rotation(int(a), int(b), bias))
+            for a, b in zip(sub.t0_ns, sub.t1_ns, strict=True)
+        ]
+    ).reshape(-1, 3)
+    dt = (sub.t1_ns - sub.t0_ns).astype(np.float64) * 1e-9
+    inc = _increments(g, sub.t0_ns, sub.t1_ns, np.asarray(d)) - np.outer(dt, bias)
+    out: FloatArray = exact - inc
+    return out
+
+
 def _refine(
     sub: IntervalRotations,
     g: _GyroIntegral,
     r0: FloatArray,
     d0: float,
     b0: FloatArray,
+    corr: FloatArray | None = None,
 ) -> tuple[FloatArray, float, FloatArray, FloatArray, FloatArray, float]:
-    """Joint least squares of (rotation, offset, bias): returns (R, d, b, x, cov, rms)."""
+    """Joint least squares of (rotation, offset, bias): returns (R, d, b, x, cov, rms).
+
+    ``corr`` (K, 3): the :func:`_second_order` terms added to the gyro side (None = 0).
+    """
     dt = (sub.t1_ns - sub.t0_ns).astype(np.float64) * 1e-9
+    extra = np.zeros((len(sub), 3)) if corr is None else corr
     a = (sub.t0_ns - g.t0).astype(np.float64) * 1e-9
     b = (sub.t1_ns - g.t0).astype(np.float64) * 1e-9
     inv_sigma = 1.0 / sub.sigma
@@ -616,7 +647,7 @@ def _refine(
     def residual(x: FloatArray) -> FloatArray:
         r = so3_exp(x[:3]) @ r0
         d = d0 + x[3] * 1e-3
-        inc = g.at(b + d) - g.at(a + d) - np.outer(dt, x[4:])
+        inc = g.at(b + d) - g.at(a + d) - np.outer(dt, x[4:]) + extra
         res = (sub.theta @ r.T - inc) * inv_sigma[:, None]
         out: FloatArray = res.reshape(-1)
         return out
@@ -686,10 +717,12 @@ def calibrate(
         inc = inc[keep]
         r0 = wahba(sub.theta, inc, 1.0 / sub.sigma**2)
     r_est, d_est, b_est, _, cov, rms = _refine(sub, g, r0, d_coarse, np.zeros(3))
+    corr = _second_order(sub, g, d_est, b_est)
+    r_est, d_est, b_est, _, cov, rms = _refine(sub, g, r_est, d_est, b_est, corr)
     sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
     sig_rot, sig_d, sig_b = sig[:3].copy(), float(sig[3]) * 1e-3, sig[4:].copy()
     if opts.bootstrap > 0:
-        boot = _bootstrap(sub, g, r_est, d_est, b_est, opts)
+        boot = _bootstrap(sub, g, r_est, d_est, b_est, corr, opts)
         if boot is not None:
             sig_rot = np.maximum(sig_rot, boot[:3])
             sig_d = max(sig_d, float(boot[3]))
@@ -715,6 +748,7 @@ def _bootstrap(
     r_est: FloatArray,
     d_est: float,
     b_est: FloatArray,
+    corr: FloatArray,
     opts: CalibrationOptions,
 ) -> FloatArray | None:
     """Moving-block bootstrap std of (rotation about IMU x y z (rad), offset (s), bias)."""
@@ -731,7 +765,7 @@ def _bootstrap(
         idx = np.concatenate([members[k] for k in pick])
         if idx.shape[0] < opts.min_intervals:
             continue
-        r, d, b, _, _, _ = _refine(sub.subset(idx), g, r_est, d_est, b_est)
+        r, d, b, _, _, _ = _refine(sub.subset(idx), g, r_est, d_est, b_est, corr[idx])
         samples.append(np.concatenate([so3_log(r @ r_est.T), [d - d_est], b - b_est]))
     if len(samples) < 3:
         return None
