@@ -120,6 +120,9 @@ class CalibrationOptions:
         bootstrap: moving-block bootstrap replicas (0 = covariance only), count.
         block_s: bootstrap block length, s.
         max_features: features tracked per frame, count.
+        exact_gyro: repeat the refine with the exact (Magnus) gyro rotation of each
+            interval (the second-order term of a turning axis); False = first order only
+            (faster, for the live check).
         seed: seed of RANSAC and bootstrap (results are deterministic).
     """
 
@@ -133,6 +136,7 @@ class CalibrationOptions:
     bootstrap: int = 40
     block_s: float = 1.0
     max_features: int = 300
+    exact_gyro: bool = True
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -614,12 +618,13 @@ def _second_order(
     """
     buf = GyroBuffer(imu_time_offset_ns=round(d * 1e9), capacity_s=1e9)
     buf.add(GyroSamples(g.t_ns, g.w))
-    exact = np.array(
+    mats = np.array(
         [
-            -so3_log(buf.relative_rotation(int(a), int(b), bias))
+            buf.relative_rotation(int(a), int(b), bias)
             for a, b in zip(sub.t0_ns, sub.t1_ns, strict=True)
         ]
-    ).reshape(-1, 3)
+    ).reshape(-1, 3, 3)
+    exact = -so3_log(mats)
     dt = (sub.t1_ns - sub.t0_ns).astype(np.float64) * 1e-9
     inc = _increments(g, sub.t0_ns, sub.t1_ns, np.asarray(d)) - np.outer(dt, bias)
     out: FloatArray = exact - inc
@@ -717,8 +722,24 @@ def calibrate(
         inc = inc[keep]
         r0 = wahba(sub.theta, inc, 1.0 / sub.sigma**2)
     r_est, d_est, b_est, _, cov, rms = _refine(sub, g, r0, d_coarse, np.zeros(3))
-    corr = _second_order(sub, g, d_est, b_est)
-    r_est, d_est, b_est, _, cov, rms = _refine(sub, g, r_est, d_est, b_est, corr)
+    if abs(d_est) > opts.max_offset_s:
+        raise CalibrationError(
+            f"the refined time offset {d_est:.4f} s left the search range "
+            f"+-{opts.max_offset_s} s (coarse {d_coarse:.4f} s): images and gyro do not "
+            "agree on any offset"
+        )
+    a = (sub.t0_ns - g.t0).astype(np.float64) * 1e-9
+    b = (sub.t1_ns - g.t0).astype(np.float64) * 1e-9
+    sub = sub.subset((a + d_est - margin >= lo) & (b + d_est + margin <= hi))
+    if len(sub) < opts.min_intervals:
+        raise CalibrationError(
+            f"the gyro covers only {len(sub)} frame intervals at offset {d_est:.4f} s "
+            f"(need >= {opts.min_intervals})"
+        )
+    corr = np.zeros((len(sub), 3))
+    if opts.exact_gyro:
+        corr = _second_order(sub, g, d_est, b_est)
+        r_est, d_est, b_est, _, cov, rms = _refine(sub, g, r_est, d_est, b_est, corr)
     sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
     sig_rot, sig_d, sig_b = sig[:3].copy(), float(sig[3]) * 1e-3, sig[4:].copy()
     if opts.bootstrap > 0:

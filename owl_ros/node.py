@@ -123,6 +123,7 @@ class OwlNode(Node):
         self._lock = threading.Lock()
         self._inbox = Inbox(self.options.queue_size)
         self._pipeline = Pipeline(self.options)
+        self._calibration_logged = False
         self._stop = threading.Event()
 
         sensor = _sensor_qos(IMAGE_DEPTH)
@@ -321,6 +322,10 @@ class OwlNode(Node):
 
     def _publish_diagnostics(self, now_mono_ns: int) -> None:
         records = self._pipeline.diagnostics(now_mono_ns, self._foreign_publishers())
+        verdict = self._pipeline.calibration_verdict
+        if verdict is not None and verdict.disagrees and not self._calibration_logged:
+            self._calibration_logged = True  # once: /diagnostics keeps saying it
+            self.get_logger().warning(f"camera-IMU calibration: {verdict.message}")
         stamp = self.get_clock().now().nanoseconds
         self._diag_pub.publish(records_to_msg(records, max(stamp, 0)))
 

@@ -54,9 +54,11 @@ from msg_adapters.image import compressed_to_frame, image_to_frame
 from msg_adapters.imu import imus_to_gyro
 from msg_adapters.pointcloud import frame_result_to_cloud
 from msg_adapters.stamps import header_to_ns
+from owl_core.calib_check import CalibrationMonitor, MonitorVerdict
 from owl_core.camera import CameraModel
 from owl_core.engine import OwlEngine
 from owl_core.errors import OwlError
+from owl_core.geometry import quat_xyzw_to_matrix
 from owl_core.types import FrameResult, GyroSamples, PointFlag
 from owl_ros.params import NodeOptions
 
@@ -219,6 +221,7 @@ class Pipeline:
         self._last_jump = ""
         self._qos_events: list[str] = []
         self._last_result: FrameResult | None = None
+        self._calibration: CalibrationMonitor | None = None
 
     # ------------------------------------------------------------------ state
 
@@ -246,6 +249,11 @@ class Pipeline:
             self._engine = None
             return
         self._engine = OwlEngine(self._camera, self.options.engine)
+        eng = self.options.engine
+        q = np.asarray(eng.camera_to_imu_rotation_xyzw, dtype=np.float64)
+        self._calibration = CalibrationMonitor(
+            self._camera, quat_xyzw_to_matrix(q / np.linalg.norm(q)), eng.imu_time_offset_s
+        )
         if self._ring:
             stamps = np.fromiter((s for s, _ in self._ring), dtype=np.int64, count=len(self._ring))
             rates = np.array([w for _, w in self._ring], dtype=np.float64).reshape(-1, 3)
@@ -274,6 +282,8 @@ class Pipeline:
         self._speeds.clear()
         if self._engine is not None:
             self._engine.reset()
+        if self._calibration is not None:
+            self._calibration.reset()
 
     def _process_before_jump(self, after_ns: int, now_ns: int) -> None:
         """The IMU jumped back: queued frames stamped after ``after_ns`` are from before the
@@ -606,6 +616,13 @@ class Pipeline:
             return None
         self._last_stamp = stamp
         self._last_result = result
+        if self._calibration is not None:  # images vs gyro (owl_core.calib_check)
+            gyro = engine.gyro
+            self._calibration.update(
+                engine.last_tracks,
+                GyroSamples(gyro.stamps_ns, gyro.rates_imu),
+                engine.gyro_bias,
+            )
         if not covered:
             self._count("frames_imu_not_covered")
         self._count("processed")
@@ -783,6 +800,10 @@ class Pipeline:
         gyro_msg = f"bias [{bias[0]:.4g}, {bias[1]:.4g}, {bias[2]:.4g}] rad/s"
         if gaps:
             gyro_msg += f"; {gaps} frames without full IMU coverage"
+        verdict = self.calibration_verdict
+        if verdict is not None and verdict.disagrees:
+            gyro_level = Level.WARN
+            gyro_msg += f"; calibration: {verdict.message}"
         gyro_rec = StatusRecord.build(
             f"{DIAG_PREFIX}: gyro",
             gyro_level,
@@ -794,15 +815,37 @@ class Pipeline:
                 "bias_sigma_rad_s": float(np.max(bias_sigma)),
                 "frames_imu_not_covered_total": t["frames_imu_not_covered"],
                 "require_gyro": self.options.engine.require_gyro,
+                **_calibration_values(verdict),
             },
         )
         if reset_window:
             self._window = _Window(start_ns=now_ns)
         return [input_rec, proc_rec, gyro_rec]
 
+    @property
+    def calibration_verdict(self) -> MonitorVerdict | None:
+        """The live calibration check's latest verdict (None before enough motion)."""
+        return self._calibration.last if self._calibration is not None else None
+
     def start_window(self, now_ns: int) -> None:
         """Start the first diagnostics window at ``now_ns`` (caller's clock)."""
         self._window.start_ns = now_ns
+
+
+def _calibration_values(verdict: MonitorVerdict | None) -> dict[str, object]:
+    """Diagnostic values of the live calibration check (empty before its first verdict)."""
+    if verdict is None:
+        return {}
+    out: dict[str, object] = {
+        "calibration_ok": not verdict.disagrees,
+        "calibration_angle_deg": verdict.angle_deg,
+        "calibration_offset_s": verdict.offset_s,
+    }
+    if verdict.rotation_xyzw is not None:
+        out["calibration_rotation_xyzw"] = (
+            "[" + ", ".join(f"{v:.4f}" for v in verdict.rotation_xyzw) + "]"
+        )
+    return out
 
 
 def draw_debug(

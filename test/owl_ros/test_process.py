@@ -255,3 +255,59 @@ def test_truncated_bag_keeps_readable_part(
     n = len(kept) - 1
     assert [d for _, d, _ in kept[:n]] == [d for _, d, _ in full[:n]]
     assert kept[n][2].width == 0 and full[n][2].width > 0
+
+
+# --- live camera-IMU calibration check (owl_core.calib_check through the pipeline) ------
+
+
+@pytest.fixture(scope="module")
+def lagging_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """handheld (walking while turning about three axes), IMU 40 ms behind the images."""
+    out = tmp_path_factory.mktemp("calib_check") / "handheld"
+    args = ["handheld", str(out), "--seconds", "2.2", "--width", str(WIDTH)]
+    args += ["--height", str(HEIGHT), "--supersample", "1", "--time-offset", "0.04"]
+    assert make_bag.main([*args, "--quiet"]) == 0
+    return out
+
+
+def calibration_warnings(path: Path, start_ns: int) -> list[tuple[float, str, dict[str, str]]]:
+    """(s after start_ns, message, values) of every WARN 'owl: gyro' status of the check."""
+    data = read(path, ["/diagnostics"])
+    first = start_ns
+    out = []
+    for log_ns, _, msg in data["/diagnostics"]:
+        for rec in msg_to_records(msg)[1]:
+            if rec.name.endswith("gyro") and rec.level == 1 and "calibration" in rec.message:
+                out.append(((log_ns - first) * 1e-9, rec.message, rec.value_map()))
+    return out
+
+
+@pytest.mark.parametrize(
+    ("args", "names"),
+    [
+        (["--camera-to-imu-rotation-xyzw", "0,0,0,1", "--imu-time-offset", "0.04"], "rotation"),
+        ([], "offset"),  # the rotation from /tf_static, the offset left at 0
+        (["--imu-time-offset", "0.04"], None),  # both right: no warning
+    ],
+)
+def test_calibration_check_warns_within_two_seconds(
+    lagging_bag: Path, tmp_path: Path, args: list[str], names: str | None
+) -> None:
+    out = tmp_path / "owl"
+    assert process.main([str(lagging_bag), "-o", str(out), "-q", *args]) == 0
+    first_image = read(lagging_bag, ["/camera/image_raw"])["/camera/image_raw"][0]
+    warnings = calibration_warnings(out, first_image[0])
+    if names is None:
+        assert warnings == []
+        return
+    # the camera turns from the first frame; diagnostics come once a second of bag time,
+    # times here count from the first image
+    assert warnings and warnings[0][0] <= 2.0 + 1e-6, warnings
+    _, message, values = warnings[0]
+    assert "run owl_calibrate" in message and values["calibration_ok"] == "False"
+    if names == "rotation":  # the true mount is 120 deg from the identity
+        assert abs(float(values["calibration_angle_deg"]) - 120.0) < 5.0
+        assert "camera_to_imu_rotation_xyzw [" in message
+    else:
+        assert abs(float(values["calibration_offset_s"]) - 0.04) < 0.02
+        assert float(values["calibration_angle_deg"]) < 5.0
