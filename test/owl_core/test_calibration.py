@@ -13,9 +13,9 @@ from itertools import pairwise
 import numpy as np
 import pytest
 
-from bags import scenarios
-from bags.scenarios import SimOptions
-from bags.sensors import ImuOptions, random_camera_to_imu
+from bags.sim import scenarios
+from bags.sim.scenarios import SimOptions
+from bags.sim.sensors import ImuOptions, random_camera_to_imu
 from owl_core import calibration as cal
 from owl_core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, so3_exp, so3_log
 

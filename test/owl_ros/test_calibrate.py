@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bags import scenarios
-from bags.make_bag import write_bag
-from bags.scenarios import SimOptions
-from bags.sensors import ImuOptions, random_camera_to_imu
+from bags.cli.make_bag import write_bag
+from bags.sim import scenarios
+from bags.sim.scenarios import SimOptions
+from bags.sim.sensors import ImuOptions, random_camera_to_imu
 from owl_core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, so3_log
 from owl_ros import calibrate
 from owl_ros.params import build_options
