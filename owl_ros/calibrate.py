@@ -37,7 +37,7 @@ from owl_core.camera import CameraModel
 from owl_core.errors import OwlError
 from owl_core.geometry import quat_xyzw_to_matrix, so3_log
 from owl_core.types import GyroSamples, ImageFrame
-from owl_ros.process import TF_STATIC, ProcessOptions, _tf_rotation
+from owl_ros.process import TF_STATIC, ProcessOptions, tf_rotation
 
 PROG = "owl_calibrate"
 
@@ -115,7 +115,7 @@ def _read(
         raise CalibrateError(f"camera_info topic {info_topic} has no messages")
     if len(imus) < 2:
         raise CalibrateError(f"imu topic {imu_topic} has {len(imus)} messages (need >= 2)")
-    tf = _tf_rotation(transforms, imu_frame, camera_frame) if transforms else None
+    tf = tf_rotation(transforms, imu_frame, camera_frame) if transforms else None
     return frames, camera, imus_to_gyro(imus), tf
 
 
