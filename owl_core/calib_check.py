@@ -67,7 +67,7 @@ class MonitorOptions:
     """
 
     window_s: float = 2.0
-    check_every: int = 15
+    check_every: int = 30
     min_rate: float = 0.1
     min_moving_intervals: int = 25
     angle_threshold_deg: float = 5.0
