@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import replace
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bags.cli.importers.cli import main as import_main
 from bags.cli.make_bag import write_bag
 from bags.sim import scenarios
 from bags.sim.scenarios import SimOptions
@@ -39,6 +41,7 @@ def rich_bag(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, np.ndarray
     return path, r, offset, bias
 
 
+@pytest.mark.slow
 def test_recovers_the_extrinsic_and_offset(
     rich_bag: tuple[Path, np.ndarray, float, tuple],
     tmp_path: Path,
@@ -74,6 +77,7 @@ def test_recovers_the_extrinsic_and_offset(
     assert out.read_text() == before
 
 
+@pytest.mark.slow
 def test_one_axis_recording_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     sim = scenarios.get("pan_only").simulate(
         replace(BAG, seconds=1.0, rate_hz=25.0, supersample=1)
@@ -94,3 +98,35 @@ def test_bad_input_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     assert len(err) == 1 and err[0].startswith("owl_calibrate: error:")
     assert calibrate.main([str(tmp_path), "--max-offset", "-1"]) == 2
     assert "max_offset_s" in capsys.readouterr().err
+
+
+SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "realsense_walk"
+
+
+@pytest.mark.slow
+def test_realsense_walk_refused_and_within_its_sigma_of_kalibr(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The real walk turns mostly about one axis (RMS 0.154, 0.082, 0.056 rad/s about its
+    principal axes): the default 0.1 rad/s second-axis threshold refuses it. Forced with a
+    0.05 rad/s threshold, the estimate must lie within 3 of its own 1-sigma (the norm over
+    the three axes) of Kalibr's T_BS, and the offset inside the search range: a bound the
+    estimate states itself (measured: 6.99 deg against a 4.0 deg 1-sigma norm, -53 ms)."""
+    if not (SHARED / "mav0").is_dir():
+        msg = f"shared recording realsense_walk not found ({SHARED})"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg)
+        pytest.skip(msg)
+    bag = tmp_path / "walk"
+    assert import_main([str(SHARED), str(bag), "-q"]) == 0  # /tf_static = Kalibr's T_BS
+    assert calibrate.main([str(bag)]) == 3
+    assert "one axis only" in capsys.readouterr().err
+    assert calibrate.main([str(bag), "--min-second-axis-rate", "0.05"]) == 0
+    text = capsys.readouterr().out
+    sig = re.search(r"1-sigma about IMU x y z: \[([^\]]+)\] deg", text)
+    angle = re.search(r"angle to /tf_static's rotation: (\S+) deg", text)
+    offset = re.search(r"imu_time_offset:=(\S+)", text)
+    assert sig and angle and offset, text
+    sigma_norm = float(np.linalg.norm([float(v) for v in sig.group(1).split(",")]))
+    assert float(angle.group(1)) < 3.0 * sigma_norm
+    assert abs(float(offset.group(1))) < 0.2
