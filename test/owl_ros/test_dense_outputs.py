@@ -83,8 +83,8 @@ def test_images_are_32fc1_on_the_working_grid_with_matching_camera_info(
     for topic in ("/owl/looming", "/owl/range_over_speed", "/owl/depth/image"):
         for _, _, msg in on[topic]:
             assert msg.encoding == "32FC1" and (msg.width, msg.height) == (DW, DH)
-    pairs = zip(on["/owl/range_over_speed"], on["/owl/depth/image"], strict=True)
-    for (t1, _, ros), (t2, _, depth), (t3, _, info) in zip(*zip(*pairs, strict=True), infos):
+    triples = zip(on["/owl/range_over_speed"], on["/owl/depth/image"], infos, strict=True)
+    for (t1, _, ros), (t2, _, depth), (t3, _, info) in triples:
         assert t1 == t2 == t3 == header_to_ns(ros.header) == header_to_ns(info.header)
         r = image_to_array(ros)
         z = image_to_array(depth)
