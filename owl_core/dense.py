@@ -87,6 +87,9 @@ class DenseOptions:
             the secant rate refers to the middle of the baseline), count (>= 1).
         window_px: side of the square window of the local affine fit, working pixels
             (odd, >= 3).
+        local_step: the local fit runs on a grid this many times coarser than the working
+            grid (block means of the field; its window is ``window_px // local_step``
+            rounded up to odd) and is interpolated back, count (1 or 2).
         flow_noise_px: 1-sigma noise of the DIS flow per axis, working pixels.
         min_texture: smallest structure-tensor eigenvalue of a *textured* pixel, (grey
             levels / working pixel)^2 (5x5 box average of the gradient products).
@@ -114,6 +117,7 @@ class DenseOptions:
     preset: str = "medium"
     baseline_frames: int = 3
     window_px: int = 15
+    local_step: int = 2
     flow_noise_px: float = 0.05
     min_texture: float = 4.0
     local_variance_scale: float = 30.0
@@ -138,6 +142,8 @@ class DenseOptions:
         w = self.window_px
         if isinstance(w, bool) or not isinstance(w, int) or w < 3 or w % 2 == 0:
             raise InvalidInputError(f"dense window_px must be an odd integer >= 3, got {w!r}")
+        if self.local_step not in (1, 2):
+            raise InvalidInputError(f"dense local_step must be 1 or 2, got {self.local_step!r}")
         if self.preset not in DIS_PRESETS:
             raise InvalidInputError(
                 f"dense preset must be one of {sorted(DIS_PRESETS)}, got {self.preset!r}"
@@ -378,6 +384,47 @@ class _LocalFit:
         return grad_u, grad_v, sigma2, m0
 
 
+def _local_gradient(
+    f: F32, weight: F32, local_fit: _LocalFit, step: int
+) -> tuple[F32, F32, F32, F32]:
+    """The local affine fit of the (h, w, 3) field ``f`` with (h, w) weights, on a grid
+    ``step`` times coarser (block-weighted means), brought back to (h, w).
+
+    Returns:
+        grad_u, grad_v: (h, w, 3) derivative of f per working pixel;
+        sigma2: (h, w) residual variance of one tangent component of (block-mean) f;
+        frac: (h, w) fraction of the window's weight the fit had (1e-3..1).
+    """
+    h, w = weight.shape
+    wb: Any = weight
+    fb: Any = f
+    if step > 1:
+        size = (w // step, h // step)
+        wb = cv2.resize(weight, size, interpolation=cv2.INTER_AREA)
+        fw = cv2.resize(f * weight[..., None], size, interpolation=cv2.INTER_AREA)
+        fb = fw / np.maximum(wb, 1e-6)[..., None]
+    wd = np.asarray(wb, dtype=np.float64)
+    fit_u, fit_v, fit_s2, count = local_fit.fit(np.asarray(fb, dtype=np.float64), wd)
+    n_win = local_fit.window
+    gu: Any = fit_u
+    gv: Any = fit_v
+    s2: Any = fit_s2
+    frac: Any = np.clip(count / (n_win * n_win), 1e-3, 1.0)
+    if step > 1:
+        up = (w, h)
+        gu = cv2.resize(fit_u, up, interpolation=cv2.INTER_LINEAR) / step
+        gv = cv2.resize(fit_v, up, interpolation=cv2.INTER_LINEAR) / step
+        finite_s2 = np.where(np.isfinite(fit_s2), fit_s2, 1e30)
+        s2 = cv2.resize(finite_s2, up, interpolation=cv2.INTER_LINEAR)
+        frac = cv2.resize(frac, up, interpolation=cv2.INTER_LINEAR)
+    return (
+        np.asarray(gu, dtype=np.float32),
+        np.asarray(gv, dtype=np.float32),
+        np.asarray(s2, dtype=np.float32),
+        np.asarray(frac, dtype=np.float32),
+    )
+
+
 def _resize(img: npt.NDArray[np.uint8], width: int, height: int) -> npt.NDArray[np.uint8]:
     if img.shape == (height, width):
         return img
@@ -464,12 +511,11 @@ def dense_owl(
 
     # ---- local rule
     t0 = time.perf_counter()
-    weight = (textured & finite & (fb < 2.0 * options.fb_max_px)).astype(np.float64)
-    f64 = np.where(finite[..., None], f, 0.0).astype(np.float64)
-    grad_u, grad_v, s2_fit, _ = local_fit.fit(f64, weight)
+    weight = (textured & finite & (fb < 2.0 * options.fb_max_px)).astype(np.float32)
+    f0 = np.where(finite[..., None], f, 0.0).astype(np.float32)
+    grad_u, grad_v, s2_fit, frac = _local_gradient(f0, weight, local_fit, options.local_step)
     a, b = grid.basis_a, grid.basis_b
-    gu = grad_u.astype(np.float32)
-    gv = grad_v.astype(np.float32)
+    gu, gv = grad_u, grad_v
     f2 = np.stack([_dot(f, a), _dot(f, b)], axis=-1)
     # gradient wrt working pixels in the tangent basis, then per radian: J = F2 E2^-1
     fa_u, fa_v, fb_u, fb_v = _dot(gu, a), _dot(gv, a), _dot(gu, b), _dot(gv, b)
@@ -485,16 +531,13 @@ def dense_owl(
     l_local = (
         fy * fy * j00 - fx * fy * (j01 + j10) + fx * fx * j11 + eps2 * 0.5 * (j00 + j11)
     ) / (f_norm2 + eps2)
-    s2 = np.maximum(s2_fit.astype(np.float32), sigma_f * sigma_f)
-    # variance of a gradient of the window fit, per radian (uniform-window approximation)
-    n_win = options.window_px
-    s_uu = n_win * (n_win * n_win - 1) * n_win / 12.0
-    var_local = s2 / (np.float32(s_uu) * grid.pix_angle**2)
-    # the fit used fewer pixels than the window holds: inflate by the missing fraction
-    frac = np.clip(cv2.boxFilter(weight.astype(np.float32), -1, (n_win, n_win)), 1e-3, 1.0).astype(
-        np.float32
-    )
-    var_local = var_local / frac
+    s2 = np.maximum(s2_fit, sigma_f * sigma_f)
+    # variance of a gradient of the window fit, per radian (uniform-window approximation,
+    # inflated by the fraction of the window the fit could not use)
+    n_win = local_fit.window
+    step = options.local_step
+    s_uu = n_win * (n_win * n_win - 1) * n_win / 12.0 * step * step
+    var_local = s2 / (np.float32(s_uu) * grid.pix_angle**2 * frac)
     local_ok = np.isfinite(l_local) & np.isfinite(var_local)
     timings["local"] = time.perf_counter() - t0
 
@@ -551,7 +594,7 @@ def dense_owl(
     # ---- confidence
     q_tex = tex / (tex + np.float32(options.min_texture))
     q_fb = 1.0 / (1.0 + (fb / np.float32(options.fb_max_px)) ** 2)
-    q_fit = 1.0 / (1.0 + s2_fit.astype(np.float32) / (9.0 * sigma_f * sigma_f))
+    q_fit = 1.0 / (1.0 + s2_fit / (9.0 * sigma_f * sigma_f))
     rel = np.sqrt(var_l) / tor
     q_prec = 1.0 / (1.0 + (rel / np.float32(options.rel_sigma)) ** 2)
     q_agree = 1.0 / (1.0 + (disagree / np.float32(options.max_disagreement)) ** 2)
@@ -650,7 +693,7 @@ class DenseOwl:
         self.options = opts = options if options is not None else DenseOptions()
         self.grid = _Grid(camera, opts.width, opts.height)
         self._dis = cv2.DISOpticalFlow.create(DIS_PRESETS[opts.preset])
-        self._fit = _LocalFit(opts.window_px)
+        self._fit = _LocalFit(max(3, (opts.window_px // opts.local_step) | 1))
         # (stamp_ns, working image), newest last, at most baseline_frames
         self._ring: list[tuple[int, npt.NDArray[np.uint8]]] = []
 
