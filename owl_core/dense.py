@@ -595,7 +595,7 @@ def dense_owl(
     q_tex = tex / (tex + np.float32(options.min_texture))
     q_fb = 1.0 / (1.0 + (fb / np.float32(options.fb_max_px)) ** 2)
     q_fit = 1.0 / (1.0 + s2_fit / (9.0 * sigma_f * sigma_f))
-    rel = np.sqrt(var_l) / tor
+    rel = np.minimum(np.sqrt(var_l) / tor, np.float32(1e6))
     q_prec = 1.0 / (1.0 + (rel / np.float32(options.rel_sigma)) ** 2)
     q_agree = 1.0 / (1.0 + (disagree / np.float32(options.max_disagreement)) ** 2)
     conf = np.where(ok, q_tex * q_fb * q_fit * q_prec * q_agree, 0.0).astype(np.float32)
