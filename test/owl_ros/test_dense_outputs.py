@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from rclpy.serialization import deserialize_message
 
-from bags import make_bag
+from bags.cli import make_bag
 from bags.io import BagReader
 from msg_adapters.camera_info import camera_info_to_model
 from msg_adapters.diagnostics import Level, msg_to_records
