@@ -312,12 +312,14 @@ def _walk_figure(picks: list[tuple[int, Any, DenseResult]], path: Path) -> None:
         conf = d.confident
         row[0].imshow(img, cmap="gray")
         row[0].set_title(f"frame {k}")
-        im = row[1].imshow(np.where(conf, d.looming, np.nan), cmap="magma", vmin=0, vmax=1.5)
+        looming = np.where(conf, d.looming, np.nan)
+        ros = np.where(conf, d.range_over_speed, np.nan)
+        l_hi = float(np.nanpercentile(np.abs(looming), 95)) if conf.any() else 1.0
+        r_hi = float(np.nanpercentile(ros, 95)) if conf.any() else 10.0
+        im = row[1].imshow(looming, cmap="coolwarm", vmin=-l_hi, vmax=l_hi)
         row[1].set_title("L (1/s), confident")
         fig.colorbar(im, ax=row[1], fraction=0.03)
-        im = row[2].imshow(
-            np.where(conf, d.range_over_speed, np.nan), cmap="viridis", vmin=0, vmax=8
-        )
+        im = row[2].imshow(ros, cmap="viridis", vmin=0, vmax=r_hi)
         row[2].set_title("r/|t| (s), confident")
         fig.colorbar(im, ax=row[2], fraction=0.03)
         im = row[3].imshow(d.confidence, cmap="gray", vmin=0, vmax=1)
