@@ -201,15 +201,16 @@ def run_synthetic(
     seconds: float,
     cache: Path | None,
     log: Any,
+    min_confidence: float = 0.5,
 ) -> dict[str, Any]:
-    """The synthetic part: per preset pooled over ``cases``, and per case for the first."""
+    """The synthetic part: per preset pooled over ``cases``, and per case."""
     passes = []
     for case in cases:
         log(f"engine pass: {case}")
         passes.append((case, *_engine_pass(case, seconds, cache)))
     doc: dict[str, Any] = {"cases": list(cases), "seconds": seconds, "presets": {}}
     for preset in presets:
-        opts = DenseOptions(preset=preset)
+        opts = DenseOptions(preset=preset, min_confidence=min_confidence)
         pooled: dict[str, list[Any]] = {}
         cpu_all: list[float] = []
         per_case = {}
@@ -424,6 +425,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--presets", default="medium,fast,ultrafast", help="DIS presets to run")
     p.add_argument("--seconds", type=float, default=1.5, help="seconds per case (30 Hz)")
     p.add_argument("--cache-dir", default="results/cache", help="rendered-frame cache")
+    p.add_argument(
+        "--min-confidence", type=float, default=0.5, help="confidence of a confident pixel"
+    )
     p.add_argument("--walk", default=None, help="ASL folder of a real recording")
     p.add_argument("--out", default="results/dense", help="figures go here")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -443,7 +447,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     def log(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
-    doc = run_synthetic(cases, presets, args.seconds, Path(args.cache_dir), log)
+    if not 0.0 <= args.min_confidence <= 1.0:
+        print(
+            f"owl_dense_bench: --min-confidence must be in [0, 1], got {args.min_confidence}",
+            file=sys.stderr,
+        )
+        return 2
+    doc = run_synthetic(
+        cases, presets, args.seconds, Path(args.cache_dir), log, args.min_confidence
+    )
     if args.walk:
         walk = Path(args.walk)
         if not (walk / "mav0" / "cam0" / "data.csv").is_file():
