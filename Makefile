@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: all venv test lint demo bench soak clean help
+.PHONY: all venv test lint demo bench bench-dense soak clean help
 
 help:  ## list the targets
 	@grep -E '^[a-z]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -24,6 +24,9 @@ demo: venv  ## render a scenario, run the pipeline, evaluate, plot; writes resul
 
 bench: venv  ## full benchmark: OWL vs the OpenCV baseline, timings and accuracy
 	$(PY) -m owl_ros.tools.bench
+
+bench-dense: venv  ## dense stage: r/|t|, confidence, time to contact, CPU per frame
+	$(PY) -m owl_ros.tools.dense_bench --walk ../shared/data/realsense_walk
 
 soak: venv  ## 10-minute looped replay through the live node: RSS and per-frame time
 	$(PY) -m owl_ros.tools.soak

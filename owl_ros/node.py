@@ -45,6 +45,7 @@ from visualization_msgs.msg import Marker
 from msg_adapters.diagnostics import records_to_msg
 from msg_adapters.image import array_to_image
 from msg_adapters.stamps import header_to_ns
+from owl_ros.dense_outputs import DensePublishers
 from owl_ros.params import PARAMS, ParameterError, build_options, descriptor, validate
 from owl_ros.pipeline import Inbox, Output, Pipeline, draw_debug
 
@@ -158,6 +159,7 @@ class OwlNode(Node):
                 event_callbacks=self._pub_events("owl/debug_image"),
             )  # fmt: skip
         self._marker_pub = self.create_publisher(Marker, "owl/heading_marker", reliable)
+        self._dense = DensePublishers(self, self.options, reliable) if self.options.dense else None
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._worker = threading.Thread(target=self._run, name="owl-worker", daemon=True)
         self._worker.start()
@@ -319,6 +321,8 @@ class OwlNode(Node):
         if pub is not None and pub.get_subscription_count() > 0:
             picture = draw_debug(out.image, out.result, self._pipeline.camera)
             pub.publish(array_to_image(picture, "bgr8", header=out.header))
+        if self._dense is not None:
+            self._dense.publish(out, self._pipeline.engine, self._pipeline.camera)
 
     def _publish_diagnostics(self, now_mono_ns: int) -> None:
         records = self._pipeline.diagnostics(now_mono_ns, self._foreign_publishers())
@@ -326,6 +330,7 @@ class OwlNode(Node):
         if verdict is not None and verdict.disagrees and not self._calibration_logged:
             self._calibration_logged = True  # once: /diagnostics keeps saying it
             self.get_logger().warning(f"camera-IMU calibration: {verdict.message}")
+        records += [self._dense.stage.status()] if self._dense is not None else []
         stamp = self.get_clock().now().nanoseconds
         self._diag_pub.publish(records_to_msg(records, max(stamp, 0)))
 

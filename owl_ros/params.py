@@ -414,6 +414,74 @@ PARAMS: tuple[Param, ...] = (
         high=8,
         engine="tracker.lk_backward_levels",
     ),
+    # ---- dense stage (owl_core.dense; node settings) ---------------------------------------
+    Param(
+        "dense",
+        "bool",
+        False,
+        "run the dense stage and offer owl/looming, owl/range_over_speed, owl/depth/image "
+        "(+ camera_info), owl/dense_points and owl/time_to_contact (each built only while "
+        "subscribed; owl_process writes all of them)",
+        read_only=True,
+    ),
+    Param(
+        "dense_width",
+        "int",
+        320,
+        "working width of the dense stage, px (the image is resized to it)",
+        low=16,
+        high=4096,
+    ),
+    Param("dense_height", "int", 240, "working height of the dense stage, px", low=16, high=4096),
+    Param(
+        "dense_preset",
+        "string",
+        "medium",
+        "OpenCV DIS dense-flow preset (ultrafast is about 4x faster than medium, less accurate)",
+        choices=("ultrafast", "fast", "medium"),
+    ),
+    Param(
+        "dense_baseline_frames",
+        "int",
+        3,
+        "dense flow between the current image and the one this many frames earlier, count",
+        low=1,
+        high=10,
+    ),
+    Param(
+        "dense_min_confidence",
+        "double",
+        0.5,
+        "confidence (0..1: texture, forward-backward flow, fit residual, precision, route "
+        "agreement) at or above which a pixel is published",
+        low=0.0,
+        high=1.0,
+    ),
+    Param(
+        "dense_cloud_stride",
+        "int",
+        4,
+        "owl/dense_points holds every n-th working pixel in each direction, count",
+        low=1,
+        high=64,
+    ),
+    Param(
+        "ttc_cone_deg",
+        "double",
+        10.0,
+        "half-angle of the path cone about the heading for the time to contact, degrees",
+        low=0.1,
+        high=89.0,
+    ),
+    Param(
+        "ttc_warn_s",
+        "double",
+        1.0,
+        "'owl: dense' in /diagnostics WARNs while the shortest time to contact in the path "
+        "cone is below this, s (0 = never)",
+        low=0.0,
+        high=1000.0,
+    ),
 )
 
 _BY_NAME: dict[str, Param] = {p.name: p for p in PARAMS}
@@ -436,6 +504,14 @@ class NodeOptions:
         min_speed: below this the cloud stays in seconds, m/s.
         publish_debug_image: offer owl/debug_image.
         diagnostics_period_s: period of /diagnostics, s.
+        dense: run the dense stage (owl_ros.dense_outputs) and offer its topics.
+        dense_width, dense_height: its working size, px.
+        dense_preset: DIS preset name.
+        dense_baseline_frames: flow baseline, frames.
+        dense_min_confidence: published pixels' least confidence, 0..1.
+        dense_cloud_stride: owl/dense_points stride, working px.
+        ttc_cone_deg: path-cone half-angle, degrees.
+        ttc_warn_s: WARN below this time to contact, s (0 = never).
     """
 
     engine: EngineOptions = field(default_factory=EngineOptions)
@@ -450,6 +526,15 @@ class NodeOptions:
     min_speed: float = 0.05
     publish_debug_image: bool = True
     diagnostics_period_s: float = 1.0
+    dense: bool = False
+    dense_width: int = 320
+    dense_height: int = 240
+    dense_preset: str = "medium"
+    dense_baseline_frames: int = 3
+    dense_min_confidence: float = 0.5
+    dense_cloud_stride: int = 4
+    ttc_cone_deg: float = 10.0
+    ttc_warn_s: float = 1.0
 
     def with_values(self, values: Mapping[str, Any]) -> NodeOptions:
         """These options with some parameters changed (validated; ParameterError)."""

@@ -47,6 +47,7 @@ from msg_adapters.diagnostics import records_to_msg
 from msg_adapters.msgtypes import message_class
 from msg_adapters.stamps import header_to_ns
 from owl_core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from owl_ros.dense_outputs import DenseWriter
 from owl_ros.params import (
     NodeOptions,
     ParameterError,
@@ -302,6 +303,7 @@ def process_bag(
             for topic in copy:
                 if topic not in (POINTS_TOPIC, HEADING_TOPIC, DIAGNOSTICS_TOPIC):
                     writer.add_topic(topic, infos[topic].msgtype, infos[topic].qos_kind)
+            dense = DenseWriter(node_opts, writer, canonical_cdr) if node_opts.dense else None
             writer.set_custom_data(
                 "owl_process", repr(sorted((k, v) for k, v in to_values(node_opts).items()))
             )
@@ -312,6 +314,8 @@ def process_bag(
                     stamp = header_to_ns(o.header)
                     frames += 1
                     points += o.result.num_points
+                    if dense is not None:
+                        dense.write(o, pipeline.engine, pipeline.camera)
                     writer.write_raw(POINTS_TOPIC, max(stamp, 0), canonical_cdr(o.cloud, CLOUD))
                     if o.heading is not None and o.result.heading is not None:
                         writer.write_raw(
@@ -325,7 +329,8 @@ def process_bag(
                             reasons[reason.split(" (")[0].split(":")[0]] += 1
 
             def diagnostics(now_ns: int) -> None:
-                msg = records_to_msg(pipeline.diagnostics(now_ns), now_ns)
+                extra = [dense.stage.status()] if dense is not None else []
+                msg = records_to_msg(pipeline.diagnostics(now_ns) + extra, now_ns)
                 writer.write_raw(DIAGNOSTICS_TOPIC, max(now_ns, 0), canonical_cdr(msg, DIAG))
 
             def handle(raw: RawMessage) -> None:

@@ -55,10 +55,10 @@ from owl_core.errors import OwlError
 from owl_core.types import FrameResult, ImageFrame
 from owl_ros.tools.errors import BenchError, ToolError
 from owl_ros.tools.evaluate import Estimate, FrameScore, Truth, score_frame, summarize
+from owl_ros.tools.threads import one_thread
 
 PROG = "owl_bench"
 #: Thread-count variables main() sets to 1 (unless already set) for one-thread timings.
-THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 METHODS = ("owl", "cv-5pt", "cv-gyro")
 #: Bias magnitude of the biased rows, rad/s, along (1, 1, 1)/sqrt(3) in the IMU frame.
 BIAS = 0.01
@@ -600,12 +600,10 @@ def _parse_cases(text: str) -> tuple[Case, ...]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``owl_bench``; returns the exit status.
 
-    Pins OpenCV and the BLAS libraries to one thread (``OMP_NUM_THREADS`` and friends,
-    unless already set): the timings are per-thread figures. Importing this module
-    changes nothing.
+    Pins OpenCV and the loaded BLAS libraries to one thread (``tools.threads``): the
+    timings are per-thread figures. Importing this module changes nothing.
     """
-    for var in THREAD_VARS:
-        os.environ.setdefault(var, "1")
+    one_thread()
     args = build_parser().parse_args(argv)
     profile = replace(QUICK if args.quick else FULL, clock=args.clock)
     try:

@@ -11,25 +11,19 @@ writes a PNG with ms/frame against tracked features and against megapixels.
 
 from __future__ import annotations
 
-import os
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
-
-import argparse  # noqa: E402
-import json  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from collections.abc import Sequence  # noqa: E402
-from dataclasses import replace  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Any  # noqa: E402
-
-import cv2  # noqa: E402
-
-from owl_core.engine import EngineOptions, OwlEngine  # noqa: E402
-from owl_core.types import ImageFrame  # noqa: E402
-from owl_ros.tools import bench  # noqa: E402
+from owl_core.engine import EngineOptions, OwlEngine
+from owl_core.types import ImageFrame
+from owl_ros.tools import bench
+from owl_ros.tools.threads import one_thread
 
 PROG = "python -m owl_ros.tools.cost"
 STAGES = ("track", "lk", "detect", "integrate", "heading", "looming", "total")
@@ -125,7 +119,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = p.parse_args(argv)
     if any(f < 1 for f in args.features):
         p.error(f"--features must be positive, got {args.features}")
-    cv2.setNumThreads(1)
+    one_thread()
     cache = Path(args.cache_dir)
     by_features = [measure(args.scenario, 640, 480, f, args.seconds, cache) for f in args.features]
     by_size = [measure(args.scenario, w, h, 1000, args.size_seconds, cache) for w, h in args.sizes]

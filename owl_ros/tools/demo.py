@@ -377,6 +377,9 @@ def run_demo(args: argparse.Namespace) -> Path:
         )
     if cube_png is not None:
         figs["shape"] = cube_png
+    from owl_ros.tools.dense_bench import dense_figure
+
+    figs["dense"] = dense_figure(sim, frames, fig_dir / "dense.png")
 
     report = out / "report.md"
     stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
@@ -405,8 +408,9 @@ def run_demo(args: argparse.Namespace) -> Path:
         "range": "Range over speed, estimated vs true",
         "cloud": "Scaled point cloud (seconds) coloured by L",
         "fields": "L and omega over the image",
+        "dense": "Dense OWL from pixels: L, omega and the scaled cloud beside the truth",
     }
-    for key in ("shape", "complex", "heading", "range", "cloud", "fields"):
+    for key in ("shape", "complex", "heading", "range", "cloud", "fields", "dense"):
         if key in rel:
             lines += [f"## {captions[key]}", "", f"![{captions[key]}]({rel[key]})", ""]
     report.write_text("\n".join(lines))

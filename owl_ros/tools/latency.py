@@ -163,6 +163,7 @@ def measure(
     max_features: int = 1000,
     domain: int | None = None,
     node_args: Sequence[str] = (),
+    image_topics: Sequence[str] = (),
 ) -> Measurement:
     """Run owl_node, publish ``clip`` looped at ``speed`` x its rate, measure (see module)."""
     import rclpy
@@ -204,6 +205,8 @@ def measure(
         on_cloud,
         QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE),
     )
+    for topic in image_topics:  # e.g. a dense output, which is built only while subscribed
+        node.create_subscription(Image, topic, lambda _msg: None, QoSProfile(depth=10))
     pub_img = node.create_publisher(Image, "/lat/image", qos_profile_sensor_data)
     pub_info = node.create_publisher(CameraInfo, "/lat/camera_info", qos_profile_sensor_data)
     pub_imu = node.create_publisher(Imu, "/lat/imu", QoSProfile(depth=100))
@@ -309,7 +312,14 @@ def _run_case(name: str, args: argparse.Namespace, node_args: list[str]) -> None
     clip = render_clip(args.scenario, args.clip_seconds, case.width, case.height, case.rate_hz)
     runs = []
     for i in range(args.runs):
-        m = measure(clip, 1.0, args.seconds, max_features=case.max_features, node_args=node_args)
+        m = measure(
+            clip,
+            1.0,
+            args.seconds,
+            max_features=case.max_features,
+            node_args=node_args,
+            image_topics=args.subscribe_image,
+        )
         runs.append(m)
         print(json.dumps({"case": name, "run": i + 1, **asdict(m), "meets": meets(case, m)}))
     if args.runs > 1:
@@ -355,6 +365,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         + ", ".join(f"{k} {c.width}x{c.height}@{c.rate_hz:g}Hz" for k, c in CASES.items()),
     )
     p.add_argument("--runs", type=int, default=1, help="runs per --case (medians printed)")
+    p.add_argument(
+        "--subscribe-image", action="append", default=[], metavar="TOPIC",
+        help="also subscribe to this sensor_msgs/Image topic of the node (e.g. "
+        "/owl/range_over_speed with -p dense:=true), repeatable",
+    )  # fmt: skip
     args = p.parse_args(argv)
     if args.runs < 1:
         p.error(f"--runs must be >= 1, got {args.runs}")
@@ -366,7 +381,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     clip = render_clip(args.scenario, args.clip_seconds, args.width, args.height, args.rate)
     for speed in args.speed:
         node_args = [x for item in args.param for x in ("-p", item)]
-        m = measure(clip, speed, args.seconds, max_features=args.max_features, node_args=node_args)
+        m = measure(
+            clip,
+            speed,
+            args.seconds,
+            max_features=args.max_features,
+            node_args=node_args,
+            image_topics=args.subscribe_image,
+        )
         print(json.dumps(asdict(m)), flush=True)
     return 0
 

@@ -35,6 +35,7 @@ def test_demo_end_to_end(tmp_path, capsys):
         "range_scatter",
         "scaled_cloud",
         "fields",
+        "dense",
     ]
     for name in figures:
         png = tmp_path / "figures" / f"{name}.png"

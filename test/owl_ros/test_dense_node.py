@@ -1,0 +1,90 @@
+"""The node's dense publishers over real DDS (in-process rclpy): built only while subscribed."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from rclpy.serialization import deserialize_message
+
+from bags.cli import make_bag
+from bags.io import BagReader
+from msg_adapters.image import image_to_array
+from msg_adapters.msgtypes import message_class
+from owl_ros.dense_outputs import DensePublishers
+from owl_ros.params import build_options
+from owl_ros.pipeline import Output, Pipeline
+
+pytestmark = [pytest.mark.dds]
+
+
+def _outputs(bag: Path, options: Any) -> list[tuple[Output, Any, Any]]:
+    pipeline = Pipeline(options)
+    outs: list[tuple[Output, Any, Any]] = []
+    roles = {"/camera/image_raw": "image", "/camera/camera_info": "info", "/imu/data": "imu"}
+    with BagReader(bag) as reader:
+        types = {t: i.msgtype for t, i in reader.topics.items()}
+        for raw in reader.messages(list(roles)):
+            msg = deserialize_message(raw.data, message_class(types[raw.topic]))
+            role = roles[raw.topic]
+            if role == "image":
+                pipeline.add_image(msg, raw.log_time_ns)
+            elif role == "info":
+                pipeline.add_camera_info(msg)
+            else:
+                pipeline.add_imu(msg, raw.log_time_ns)
+            for out in pipeline.poll(raw.log_time_ns):
+                outs.append((out, pipeline.engine, pipeline.camera))
+    return outs
+
+
+def test_dense_outputs_built_only_while_subscribed(
+    tmp_path: Path, ros_domain_env: dict[str, str]
+) -> None:
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    bag = tmp_path / "street"
+    args = ["street", str(bag), "--seconds", "0.5", "--width", "160", "--height", "120"]
+    assert make_bag.main([*args, "--quiet"]) == 0
+    options = build_options({"dense": True, "dense_width": 80, "dense_height": 60})
+    outs = _outputs(bag, options)
+    assert len(outs) >= 10
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node("owl", context=context)
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        pubs = DensePublishers(node, options, qos)
+        half = len(outs) // 2
+        for out, engine, camera in outs[:half]:
+            pubs.publish(out, engine, camera)
+        assert pubs.stage.last is None  # nobody listened: the dense stage never ran
+        got: list[Any] = []
+        listener = rclpy.create_node("listener", context=context)
+        listener.create_subscription(Image, "owl/range_over_speed", got.append, qos)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(listener)
+        deadline = time.monotonic() + 10.0
+        ros_pub = next(p for p in pubs.publishers if p.topic_name == "/owl/range_over_speed")
+        while ros_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        assert ros_pub.get_subscription_count() == 1
+        for out, engine, camera in outs[half:]:
+            pubs.publish(out, engine, camera)
+        want = len(outs) - half - 1  # the first frame after subscribing keeps its image only
+        while len(got) < want and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        assert len(got) == want
+        assert pubs.stage.last is not None
+        assert image_to_array(got[-1]).shape == (60, 80)
+        assert got[-1].encoding == "32FC1"
+        listener.destroy_node()
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)

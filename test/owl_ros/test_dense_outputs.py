@@ -1,0 +1,151 @@
+"""Dense outputs of owl_process (parameter dense: true) on a rendered street bag."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from rclpy.serialization import deserialize_message
+
+from bags.cli import make_bag
+from bags.io import BagReader
+from msg_adapters.camera_info import camera_info_to_model
+from msg_adapters.diagnostics import Level, msg_to_records
+from msg_adapters.image import image_to_array
+from msg_adapters.msgtypes import message_class
+from msg_adapters.pointcloud import cloud_to_array
+from msg_adapters.stamps import header_to_ns
+from owl_ros.dense_outputs import TOPICS, working_camera
+from owl_ros.params import build_options
+from owl_ros.process import ProcessOptions, process_bag
+
+WIDTH, HEIGHT = 320, 240
+DW, DH = 160, 120
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("dense") / "street"
+    args = ["street", str(out), "--seconds", "1.0", "--width", str(WIDTH)]
+    assert make_bag.main([*args, "--height", str(HEIGHT), "--quiet", "--seed", "5"]) == 0
+    return out
+
+
+def read(path: Path) -> dict[str, list[tuple[int, bytes, Any]]]:
+    out: dict[str, list[tuple[int, bytes, Any]]] = {}
+    with BagReader(path) as reader:
+        types = {t: i.msgtype for t, i in reader.topics.items()}
+        for raw in reader.messages(None):
+            msg = deserialize_message(raw.data, message_class(types[raw.topic]))
+            out.setdefault(raw.topic, []).append((raw.log_time_ns, raw.data, msg))
+    return out
+
+
+@pytest.fixture(scope="module")
+def outputs(bag: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, Any]:
+    base = tmp_path_factory.mktemp("dense_out")
+    node = build_options(
+        {"dense": True, "dense_width": DW, "dense_height": DH, "ttc_warn_s": 100.0}
+    )
+    process_bag(bag, base / "on", ProcessOptions(node=node))
+    process_bag(bag, base / "off", ProcessOptions(node=replace(node, dense=False)))
+    return read(base / "on"), read(base / "off")
+
+
+def test_sparse_outputs_unchanged_and_dense_topics_written(outputs: tuple[Any, Any]) -> None:
+    on, off = outputs
+    assert set(off) == {"/owl/points", "/owl/heading", "/diagnostics"}
+    assert set(on) == set(off) | {"/" + t for t in TOPICS}
+    for topic in ("/owl/points", "/owl/heading"):
+        assert [d for _, d, _ in on[topic]] == [d for _, d, _ in off[topic]]
+    n_images = len(on["/owl/points"])
+    # the first frame has no previous image: every later frame has every dense output
+    for topic in TOPICS:
+        assert len(on["/" + topic]) == n_images - 1
+
+
+def test_images_are_32fc1_on_the_working_grid_with_matching_camera_info(
+    bag: Path, outputs: tuple[Any, Any]
+) -> None:
+    on, _ = outputs
+    infos = on["/owl/depth/camera_info"]
+    model = camera_info_to_model(infos[-1][2])
+    with BagReader(bag) as reader:
+        (raw,) = list(reader.messages(["/camera/camera_info"]))[:1]
+        full = camera_info_to_model(reader.deserialize(raw))
+    expected = working_camera(full, DW, DH)
+    np.testing.assert_allclose(model.K, expected.K)
+    assert (model.width, model.height) == (DW, DH)
+    for topic in ("/owl/looming", "/owl/range_over_speed", "/owl/depth/image"):
+        for _, _, msg in on[topic]:
+            assert msg.encoding == "32FC1" and (msg.width, msg.height) == (DW, DH)
+    triples = zip(on["/owl/range_over_speed"], on["/owl/depth/image"], infos, strict=True)
+    for (t1, _, ros), (t2, _, depth), (t3, _, info) in triples:
+        assert t1 == t2 == t3 == header_to_ns(ros.header) == header_to_ns(info.header)
+        r = image_to_array(ros)
+        z = image_to_array(depth)
+        # NaN in the same places; depth = r * e_z <= r
+        assert np.array_equal(np.isnan(r), np.isnan(z))
+        assert np.all(z[np.isfinite(z)] <= r[np.isfinite(r)] + 1e-5)
+
+
+def test_range_over_speed_against_the_truth(bag: Path, outputs: tuple[Any, Any]) -> None:
+    on, _ = outputs
+    with BagReader(bag) as reader:
+        types = {t: i.msgtype for t, i in reader.topics.items()}
+        truth = {}
+        speed = {}
+        for raw in reader.messages(["/ground_truth/range", "/ground_truth/twist"]):
+            msg = deserialize_message(raw.data, message_class(types[raw.topic]))
+            if raw.topic == "/ground_truth/range":
+                truth[header_to_ns(msg.header)] = image_to_array(msg)
+            else:
+                v = msg.twist.linear
+                speed[header_to_ns(msg.header)] = math.hypot(v.x, v.y, v.z)
+    errors = []
+    for _, _, msg in on["/owl/range_over_speed"][10:]:
+        stamp = header_to_ns(msg.header)
+        est = image_to_array(msg)
+        # the working pixel (i, j) covers input pixels 2i..2i+1: compare with their mean
+        r = truth[stamp].reshape(DH, 2, DW, 2).mean(axis=(1, 3)) / speed[stamp]
+        ok = np.isfinite(est) & np.isfinite(r) & (r < 1e3)
+        errors.append(np.abs(est[ok] - r[ok]) / r[ok])
+    rel = np.concatenate(errors)
+    assert rel.size > 0.2 * DW * DH * len(errors)
+    # a 160x120 working grid from a 320x240 bag: a few tenths of a pixel of flow noise
+    assert np.median(rel) < 0.1
+
+
+def test_time_to_contact_and_its_warning(outputs: tuple[Any, Any]) -> None:
+    on, _ = outputs
+    points = [m.point for _, _, m in on["/owl/time_to_contact"][10:]]
+    ttc = np.array([math.sqrt(p.x**2 + p.y**2 + p.z**2) for p in points])
+    # down the street the path cone mostly sees far facades and the sky: NaN = nothing
+    # confident approaches inside it; where something does, it lies ahead
+    found = np.isfinite(ttc)
+    assert found.any()
+    assert np.all(ttc[found] > 0)
+    assert all(p.z > 0 for p, ok in zip(points, found, strict=True) if ok)
+    warned = []
+    for _, _, msg in on["/diagnostics"]:
+        _, records = msg_to_records(msg)
+        dense = [r for r in records if r.name == "owl: dense"]
+        assert len(dense) == 1
+        warned.append(dense[0].level == Level.WARN and "ttc_warn_s" in dense[0].message)
+    assert any(warned)  # ttc_warn_s 100 s: every time to contact is below it
+
+
+def test_dense_cloud_holds_confident_pixels_at_the_stride(outputs: tuple[Any, Any]) -> None:
+    on, _ = outputs
+    stride = build_options({}).dense_cloud_stride
+    for _, _, msg in on["/owl/dense_points"][5:]:
+        pts = cloud_to_array(msg)
+        assert pts.shape[0] > 0
+        assert np.all(pts["u"] % stride == 0) and np.all(pts["v"] % stride == 0)
+        xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
+        np.testing.assert_allclose(np.linalg.norm(xyz, axis=1), pts["range_over_speed"], rtol=1e-4)
+        assert np.all(pts["confidence"] >= build_options({}).dense_min_confidence)
