@@ -70,6 +70,7 @@ from bags.errors import (
     BagTopicError,
     CorruptBagError,
     NotABagError,
+    OutputOverlapError,
 )
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -484,6 +485,49 @@ def _looks_like_bag_dir(path: Path) -> bool:
     )
 
 
+#: The one message for an existing output (every tool exits with status 1 on it).
+OVERWRITE_MESSAGE = "output {path} exists (add --overwrite to replace it)"
+
+
+def _overlap(output: Path, source: Path) -> str | None:
+    """How ``output`` overlaps ``source`` ("is", "is inside", "contains"), or None."""
+    out, src = output.resolve(), source.resolve()
+    if out == src:
+        return "is"
+    if out.is_relative_to(src):
+        return "is inside"
+    if src.is_relative_to(out):
+        return "contains"
+    return None
+
+
+def check_output(
+    output: str | os.PathLike[str],
+    inputs: Iterable[str | os.PathLike[str]] = (),
+    *,
+    overwrite: bool = False,
+) -> None:
+    """Refuse an output path before a tool reads or renders anything.
+
+    The one check every writing tool shares (owl_process, owl_make_bag, owl_record, the
+    demo, the result bags of owl_eval/owl_bench): an output that is one of ``inputs``,
+    lies inside one or contains one is refused even with ``overwrite`` (replacing it
+    would delete the input); an existing output is refused unless ``overwrite``.
+
+    Raises:
+        OutputOverlapError: the output is, is inside or contains an input.
+        BagExistsError: the output exists and ``overwrite`` is False.
+    """
+    out = Path(output)
+    for source in inputs:
+        how = _overlap(out, Path(source))
+        if how is not None:
+            msg = f"refusing to write {out}: the output {how} the input {source}"
+            raise OutputOverlapError(msg)
+    if (out.exists() or out.is_symlink()) and not overwrite:
+        raise BagExistsError(OVERWRITE_MESSAGE.format(path=out))
+
+
 class BagWriter:
     """Writes a rosbag2 directory (metadata.yaml + <name>.mcap) with the Jazzy typestore.
 
@@ -495,14 +539,24 @@ class BagWriter:
         path: the output rosbag2 directory.
         overwrite: replace an existing bag at ``path``. Only a directory that holds
             nothing but rosbag2 files is replaced; anything else raises BagExistsError.
+        inputs: the paths the tool reads; an output that is one of them, is inside one
+            or contains one is refused, even with ``overwrite`` (see check_output).
 
     Raises:
         BagExistsError: ``path`` exists and ``overwrite`` is False, or it is not a bag.
+        OutputOverlapError: ``path`` is, is inside or contains one of ``inputs``.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        overwrite: bool = False,
+        inputs: Iterable[str | os.PathLike[str]] = (),
+    ) -> None:
         self.path = Path(path)
         self.overwrite = overwrite
+        self.inputs = tuple(Path(p) for p in inputs)
         self._check_target()
         self._tmpdir: Path | None = None
         self._writer: Writer | None = None
@@ -512,14 +566,14 @@ class BagWriter:
         self.count = 0
 
     def _check_target(self) -> None:
+        check_output(self.path, self.inputs, overwrite=True)
         if not self.path.exists() and not self.path.is_symlink():
             if not self.path.parent.is_dir():
                 msg = f"output directory {self.path.parent} does not exist (for bag {self.path})"
                 raise BagError(msg)
             return
         if not self.overwrite:
-            msg = f"output {self.path} exists (pass overwrite / --overwrite to replace it)"
-            raise BagExistsError(msg)
+            raise BagExistsError(OVERWRITE_MESSAGE.format(path=self.path))
         if not self.path.is_dir() or self.path.is_symlink() or not _looks_like_bag_dir(self.path):
             msg = f"refusing to overwrite {self.path}: it is not a rosbag2 directory"
             raise BagExistsError(msg)

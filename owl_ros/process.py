@@ -257,7 +257,8 @@ def process_bag(
     t_start = time.monotonic()
     opts = options if options is not None else ProcessOptions()
     out = Path(out_path)
-    BagWriter(out, overwrite=opts.overwrite)  # refuse an existing output before reading
+    # refuse an existing output, or one that is/holds/lies inside the input, before reading
+    BagWriter(out, overwrite=opts.overwrite, inputs=[in_path])
     with BagReader(in_path, recover=True) as bag:
         roles = _check_topics(bag, opts)
         infos = bag.topics
@@ -296,7 +297,7 @@ def process_bag(
         next_diag: int | None = None
         damage: str | None = None
 
-        with BagWriter(out, overwrite=opts.overwrite) as writer:
+        with BagWriter(out, overwrite=opts.overwrite, inputs=[in_path]) as writer:
             writer.add_topic(POINTS_TOPIC, CLOUD, "reliable")
             writer.add_topic(HEADING_TOPIC, VECTOR, "reliable")
             writer.add_topic(DIAGNOSTICS_TOPIC, DIAG, "reliable")

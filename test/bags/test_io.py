@@ -319,3 +319,27 @@ def test_topic_errors(tmp_path: Path) -> None:
         with pytest.raises(BagTopicError, match="/nope not in bag"):
             list(bag.messages(["/nope"]))
     shutil.rmtree(out)
+
+
+def test_check_output_refuses_the_input_inside_it_or_containing_it(tmp_path: Path) -> None:
+    from bags.errors import OutputOverlapError
+    from bags.io import check_output
+
+    bag = tmp_path / "in_bag"
+    bag.mkdir()
+    (bag / "in_bag_0.mcap").write_bytes(b"x")
+    for out, how in ((bag, "is"), (bag / "sub", "is inside"), (tmp_path, "contains")):
+        with pytest.raises(OutputOverlapError, match=f"the output {how} the input"):
+            check_output(out, [bag], overwrite=True)
+    with pytest.raises(OutputOverlapError, match="is the input"):  # same path, other spelling
+        check_output(tmp_path / "x" / ".." / "in_bag", [bag], overwrite=True)
+    with pytest.raises(BagExistsError, match=r"exists \(add --overwrite to replace it\)"):
+        check_output(bag, [], overwrite=False)
+    check_output(tmp_path / "new", [bag])  # unrelated and absent: fine
+    # BagWriter applies it even with overwrite (it would otherwise rmtree the input)
+    mcap = tmp_path / "out" / "rec.mcap"
+    mcap.parent.mkdir()
+    mcap.write_bytes(b"x")
+    with pytest.raises(OutputOverlapError, match="contains the input"):
+        BagWriter(mcap.parent, overwrite=True, inputs=[mcap])
+    assert mcap.read_bytes() == b"x"

@@ -210,7 +210,7 @@ def test_cli_runs_with_params_file(
         (["{bag}", "-o", "{out}", "--imu-topic", "/camera/image_raw"], 1, "has type"),
         (["{bag}", "-o", "{out}", "-p", "max_features:=-3"], 2, "parameter max_features"),
         (["{bag}", "-o", "{out}", "--camera-to-imu-rotation-xyzw", "0,0,1"], 2, "4 elements"),
-        (["{bag}", "-o", "{bag}"], 1, "exists"),
+        (["{bag}", "-o", "{bag}"], 1, "the output is the input"),
     ],
 )
 def test_cli_bad_input_one_line(
@@ -231,6 +231,43 @@ def test_cli_bad_input_one_line(
     assert process.main([subs.get(a, a) for a in args]) == code
     assert expect in one_error_line(capsys)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("where", ["{bag}", "{bag}/sub", "{parent}"])
+def test_output_that_is_inside_or_holds_the_input_refused_even_with_overwrite(
+    bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], where: str
+) -> None:
+    # a copy as a bare .mcap in a directory of its own, so that "{parent}" holds only
+    # bag files (BagWriter would otherwise refuse it as "not a rosbag2 directory")
+    src = tmp_path / "d" / "in.mcap"
+    src.parent.mkdir()
+    shutil.copy(next(bag.glob("*.mcap")), src)
+    before = src.read_bytes()
+    out = where.format(bag=src, parent=src.parent)
+    assert process.main([str(src), "-o", out, "--overwrite", "-q"]) == 1
+    line = one_error_line(capsys)
+    assert line.startswith("owl_process: error: refusing to write") and str(src) in line
+    assert src.read_bytes() == before and sorted(src.parent.iterdir()) == [src]
+
+
+def test_existing_output_same_message_and_status_in_every_tool(
+    bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    shutil.copytree(bag, out)
+    expect = f"error: output {out} exists (add --overwrite to replace it)"
+    assert process.main([str(bag), "-o", str(out), "-q"]) == 1
+    assert expect in one_error_line(capsys)
+    assert make_bag.main(["still", str(out), "--seconds", "0.2", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0] == f"owl_make_bag: {expect}", err
+    from bags import record
+
+    run = subprocess.run(
+        [sys.executable, "-m", "bags.record", str(out), "/imu/data"],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert run.returncode == 1 and expect in run.stderr and record.PROG in run.stderr
 
 
 def test_truncated_bag_keeps_readable_part(
