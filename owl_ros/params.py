@@ -694,7 +694,11 @@ def parse_value(name: str, text: str) -> Any:
 
     p = _BY_NAME.get(name)
     if p is None:
-        raise ParameterError([f"parameter {name}: unknown parameter"])
+        import difflib
+
+        close = difflib.get_close_matches(name, list(_BY_NAME), n=1, cutoff=0.75)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise ParameterError([f"parameter {name}: unknown parameter{hint}"])
     if p.kind == "string":
         return text
     try:

@@ -48,6 +48,7 @@ from msg_adapters.msgtypes import message_class
 from msg_adapters.stamps import header_to_ns
 from owl_core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from owl_ros.dense_outputs import DenseWriter
+from owl_ros.node_report import EXTRINSIC_HOWTO, unknown_parameters
 from owl_ros.params import (
     NodeOptions,
     ParameterError,
@@ -70,6 +71,10 @@ VECTOR = "geometry_msgs/msg/Vector3Stamped"
 DIAG = "diagnostic_msgs/msg/DiagnosticArray"
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 SPEED_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/TwistStamped")
+
+
+#: what to do with a bag that has no IMU topic.
+NO_IMU_HINT = "for a bag without IMU: --imu-topic '' -p require_gyro:=false"
 
 
 def canonical_cdr(msg: Any, msgtype: str) -> bytes:
@@ -194,7 +199,10 @@ def _check_topics(bag: BagReader, opts: ProcessOptions) -> dict[str, str]:
     }
     for role, topic in wanted.items():
         if topic not in topics:
-            raise ProcessError(f"{role} topic {topic} is not in bag {bag.path} (has: {have})")
+            hint = f" ({NO_IMU_HINT})" if role == "imu" else ""
+            raise ProcessError(
+                f"{role} topic {topic} is not in bag {bag.path} (has: {have}){hint}"
+            )
         msgtype = topics[topic].msgtype
         if msgtype not in expected[role]:
             raise ProcessError(
@@ -525,6 +533,9 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
         rotation_given = True
     if args.imu_time_offset is not None:
         values["imu_time_offset"] = args.imu_time_offset
+    typos, _ = unknown_parameters(values)  # a typo in a parameter file: refused
+    if typos:
+        raise ParameterError(typos)
     node = build_options(values)
     return ProcessOptions(
         node=node,
@@ -536,6 +547,25 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
         copy_inputs=args.copy_inputs,
         overwrite=args.overwrite,
     )
+
+
+def summary_notes(summary: Summary, opts: ProcessOptions) -> list[str]:
+    """Lines after a run: why frames had no points (counts per reason, one line), what to
+    do about a missing IMU, and the identity extrinsic when none was given or found."""
+    notes = []
+    if summary.reasons:
+        ranked = sorted(summary.reasons.items(), key=lambda kv: (-kv[1], kv[0]))
+        without = summary.frames_processed - summary.frames_with_points
+        text = ", ".join(f"{reason} {n}" for reason, n in ranked)
+        notes.append(f"frames without points: {without} of {summary.frames_processed} ({text})")
+        if not opts.imu_topic and opts.node.engine.require_gyro:
+            notes.append(f"no IMU topic and require_gyro is true: {NO_IMU_HINT}")
+    if summary.extrinsic_source == "default":
+        notes.append(
+            "warning: no camera-IMU rotation given and none in /tf_static: used the identity; "
+            + EXTRINSIC_HOWTO
+        )
+    return notes
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -567,6 +597,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 1
+    for line in summary_notes(summary, opts):
+        print(f"{PROG}: {line}", file=sys.stderr)
     if not args.quiet:
         print(
             f"{PROG}: wrote {summary.out_path}: {summary.frames_processed} frames, "

@@ -348,3 +348,34 @@ def test_calibration_check_warns_within_two_seconds(
     else:
         assert abs(float(values["calibration_offset_s"]) - 0.04) < 0.02
         assert float(values["calibration_angle_deg"]) < 5.0
+
+
+def test_summary_says_why_frames_have_no_points_and_what_to_do_without_imu(
+    bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert process.main([str(bag), "-o", str(tmp_path / "o"), "--imu-topic", "", "-q"]) == 0
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 2, lines
+    assert lines[0].startswith("owl_process: frames without points: ")
+    assert "no gyro samples" in lines[0]
+    n = int(lines[0].split(": ")[2].split()[0])
+    total = int(lines[0].split(" of ")[1].split()[0])
+    assert n == total > 0
+    assert lines[1].endswith("--imu-topic '' -p require_gyro:=false")
+    # a topic missing: the same hint, in the one error line
+    assert process.main([str(bag), "-o", str(tmp_path / "p"), "--imu-topic", "/x"]) == 1
+    assert one_error_line(capsys).endswith("--imu-topic '' -p require_gyro:=false)")
+    # a typo in a parameter name: refused with the close match
+    assert process.main([str(bag), "-o", str(tmp_path / "q"), "-p", "max_feature:=9"]) == 2
+    assert "did you mean max_features?" in one_error_line(capsys)
+
+
+def test_identity_extrinsic_is_said_with_how_to_set_it(result: tuple[Path, Any]) -> None:
+    from dataclasses import replace
+
+    summary = result[1]
+    assert summary.extrinsic_source == "tf_static"  # the rendered bag has /tf_static
+    assert not [n for n in process.summary_notes(summary, ProcessOptions()) if "identity" in n]
+    notes = process.summary_notes(replace(summary, extrinsic_source="default"), ProcessOptions())
+    (note,) = [n for n in notes if "identity" in n]
+    assert "--camera-to-imu-rotation-xyzw X,Y,Z,W" in note and "TF" in note
