@@ -154,6 +154,23 @@ def _one_line(err: BaseException) -> str:
     return text or type(err).__name__
 
 
+def _mcap_custom_data(path: Path) -> dict[str, Any]:
+    """``custom_data`` of the rosbag2 metadata stored inside an MCAP file, {} if absent."""
+    import yaml
+    from mcap.reader import make_reader
+
+    try:
+        with path.open("rb") as f:
+            for record in make_reader(f).iter_metadata():
+                if record.name == "rosbag2":
+                    meta = yaml.safe_load(record.metadata.get("serialized_metadata", ""))
+                    custom = meta.get("custom_data") if isinstance(meta, dict) else None
+                    return dict(custom) if isinstance(custom, dict) else {}
+    except (McapError, OSError, ValueError, yaml.YAMLError, struct.error):
+        return {}
+    return {}
+
+
 def _has_mcap_magic(path: Path) -> bool:
     try:
         with path.open("rb") as f:
@@ -341,10 +358,14 @@ class BagReader:
 
     @property
     def custom_data(self) -> dict[str, str]:
-        """metadata.yaml ``custom_data`` (key -> string); {} for a bare or recovered .mcap."""
-        if self._reader is None:
-            return {}
-        custom = getattr(self._reader.storage.metadata, "custom", None) or {}
+        """metadata.yaml ``custom_data`` (key -> string). A bare .mcap file (or a bag
+        without metadata.yaml) gives the copy rosbag2 keeps in the MCAP ``rosbag2``
+        metadata record; {} when there is none."""
+        custom = {}
+        if self._reader is not None:
+            custom = getattr(self._reader.storage.metadata, "custom", None) or {}
+        if not custom and self._mcap_files:
+            custom = _mcap_custom_data(self._mcap_files[0])
         return {str(k): str(v) for k, v in custom.items()}
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
