@@ -28,7 +28,6 @@ Python use (evaluation, demo)::
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from collections import Counter
@@ -211,6 +210,19 @@ def _check_topics(bag: BagReader, opts: ProcessOptions) -> dict[str, str]:
     return {topic: role for role, topic in wanted.items()}
 
 
+#: no time estimate before this fraction of the messages and this many seconds: the first
+#: frames pay for lazy imports and the engine's start, which the rate would extrapolate.
+ETA_MIN_FRACTION = 0.1
+ETA_MIN_S = 1.0
+
+
+def eta_text(elapsed_s: float, fraction: float) -> str:
+    """``", ~N s left"`` from the rate so far, or "" while that rate means little."""
+    if fraction >= 1 or fraction < ETA_MIN_FRACTION or elapsed_s < ETA_MIN_S:
+        return ""
+    return f", ~{elapsed_s / fraction - elapsed_s:.0f} s left"
+
+
 class _Progress:
     def __init__(self, stream: TextIO | None, total: int) -> None:
         self.stream = stream
@@ -228,11 +240,9 @@ class _Progress:
         self.last = now
         elapsed = now - self.t0
         frac = done / self.total
-        eta = elapsed / frac - elapsed if frac > 0 else math.nan
         bar = "#" * int(30 * frac)
-        text = f"{PROG}: [{bar:<30}] {100 * frac:5.1f}%  {frames} frames  {elapsed:.1f} s" + (
-            f", ~{eta:.0f} s left" if frac < 1 else ""
-        )
+        text = f"{PROG}: [{bar:<30}] {100 * frac:5.1f}%  {frames} frames  {elapsed:.1f} s"
+        text += eta_text(elapsed, frac)
         self.stream.write(("\r" + text + "\x1b[K") if self.tty else text + "\n")
         if force and self.tty:
             self.stream.write("\n")

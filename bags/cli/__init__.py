@@ -15,10 +15,11 @@ from __future__ import annotations
 import argparse
 import re
 from collections.abc import Sequence
+from pathlib import Path
 from types import FrameType
 from typing import Any, NoReturn
 
-__all__ = ["OneLineErrorParser", "StopRequest"]
+__all__ = ["OneLineErrorParser", "StopRequest", "user_cache_dir"]
 
 
 #: A comma-separated list of numbers whose first starts with "-" (e.g. -0.5,0.5,-1e-3).
@@ -67,6 +68,15 @@ def join_negative_values(parser: argparse.ArgumentParser, args: Sequence[str]) -
         out.append(item)
         i += 1
     return out
+
+
+def user_cache_dir(name: str) -> Path:
+    """``$XDG_CACHE_HOME/owl_ros/<name>`` (default ``~/.cache/owl_ros/<name>``): where tools
+    keep re-creatable files, instead of a directory below wherever they are run."""
+    import os
+
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "owl_ros" / name
 
 
 class StopRequest:

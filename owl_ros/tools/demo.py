@@ -23,6 +23,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -39,22 +40,53 @@ from owl_ros.tools.live import LiveNode
 PROG = "owl_demo"
 
 
+#: longest the demo stays silent: a step that prints nothing for this long gets a line, s.
+HEARTBEAT_S = 3.0
+
+
 class _Log:
-    def __init__(self, steps: int, quiet: bool) -> None:
+    """Step lines on stderr, and (``start_heartbeat``) a "still working" line whenever
+    nothing was printed for ``heartbeat_s`` seconds."""
+
+    def __init__(self, steps: int, quiet: bool, heartbeat_s: float = HEARTBEAT_S) -> None:
         self.steps = steps
         self.quiet = quiet
         self.t0 = time.monotonic()
         self.k = 0
+        self.heartbeat_s = heartbeat_s
+        self.last = self.t0
+        self.current = ""
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
 
     def step(self, text: str) -> None:
         self.k += 1
+        self.current = f"[{self.k}/{self.steps}]"
         self(f"[{self.k}/{self.steps}] {text}")
 
     def __call__(self, text: str) -> None:
-        if not self.quiet:
-            print(
-                f"{PROG} {time.monotonic() - self.t0:5.1f} s: {text}", file=sys.stderr, flush=True
-            )
+        with self._lock:
+            self.last = time.monotonic()
+            if not self.quiet:
+                print(f"{PROG} {self.last - self.t0:5.1f} s: {text}", file=sys.stderr, flush=True)
+
+    def start_heartbeat(self) -> None:
+        """Print a line for a step that has been silent for ``heartbeat_s``."""
+
+        def beat() -> None:
+            while not self._stop.wait(self.heartbeat_s / 4):
+                if time.monotonic() - self.last >= self.heartbeat_s:
+                    self(f"{self.current} still working")
+
+        self._thread = threading.Thread(target=beat, name="demo-heartbeat", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """End the heartbeat."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -293,6 +325,7 @@ def run_demo(args: argparse.Namespace) -> Path:
     work.mkdir(parents=True, exist_ok=True)
     fig_dir.mkdir(parents=True, exist_ok=True)
     log = _Log(5 if args.no_cube else 6, args.quiet)
+    log.start_heartbeat()  # a daemon thread: ends with the process on an error
     in_bag, owl_bag = work / "input", work / "owl"
 
     log.step(
@@ -425,6 +458,7 @@ def run_demo(args: argparse.Namespace) -> Path:
             indent=1,
         )
     )
+    log.stop()
     return report
 
 

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from bags import make_bag
-from bags.cli import OneLineErrorParser
+from bags.cli import OneLineErrorParser, make_bag
 from owl_ros import process
 
 

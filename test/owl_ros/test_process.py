@@ -261,10 +261,10 @@ def test_existing_output_same_message_and_status_in_every_tool(
     assert make_bag.main(["still", str(out), "--seconds", "0.2", "--quiet"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0] == f"owl_make_bag: {expect}", err
-    from bags import record
+    from bags.cli import record
 
     run = subprocess.run(
-        [sys.executable, "-m", "bags.record", str(out), "/imu/data"],
+        [sys.executable, "-m", "bags.cli.record", str(out), "/imu/data"],
         capture_output=True, text=True, timeout=60, check=False,
     )  # fmt: skip
     assert run.returncode == 1 and expect in run.stderr and record.PROG in run.stderr
@@ -379,3 +379,11 @@ def test_identity_extrinsic_is_said_with_how_to_set_it(result: tuple[Path, Any])
     notes = process.summary_notes(replace(summary, extrinsic_source="default"), ProcessOptions())
     (note,) = [n for n in notes if "identity" in n]
     assert "--camera-to-imu-rotation-xyzw X,Y,Z,W" in note and "TF" in note
+
+
+def test_no_time_estimate_from_the_first_messages() -> None:
+    # the "~81 s left" of a 1.4 s run: 0.3 s for the first 0.4 % (imports, engine start)
+    assert process.eta_text(0.3, 0.004) == ""
+    assert process.eta_text(0.9, 0.5) == ""
+    assert process.eta_text(2.0, 0.5) == ", ~2 s left"
+    assert process.eta_text(5.0, 1.0) == ""
