@@ -39,6 +39,7 @@ import functools
 import os
 import shutil
 import struct
+import sys
 import tempfile
 import zlib
 from collections.abc import Iterable, Iterator
@@ -58,7 +59,15 @@ from rosbags.interfaces import (
     QosReliability,
     QosTime,
 )
-from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
+from rosbags.rosbag2 import (
+    CompressionFormat,
+    CompressionMode,
+    Reader,
+    ReaderError,
+    StoragePlugin,
+    Writer,
+    WriterError,
+)
 from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
@@ -245,7 +254,9 @@ class BagReader:
         reader = Reader(target)
         try:
             reader.open()
-        except (ReaderError, OSError, KeyError, ValueError, TypeError, OverflowError) as err:
+        except (
+            ReaderError, OSError, KeyError, ValueError, TypeError, OverflowError, *_ZSTD_ERRORS
+        ) as err:  # fmt: skip
             msg = f"truncated or corrupt bag {self.path}: {_one_line(err)}"
             raise CorruptBagError(msg) from None
         self._reader = reader
@@ -286,7 +297,10 @@ class BagReader:
                         elif isinstance(record, Message) and record.channel_id in channels:
                             channel = channels[record.channel_id]
                             yield schemas.get(channel.schema_id), channel, record
-            except (McapError, OSError, ValueError, EOFError, OverflowError, struct.error) as err:
+            except (
+                McapError, OSError, ValueError, EOFError, OverflowError, struct.error,
+                *_ZSTD_ERRORS,
+            ) as err:  # fmt: skip
                 # garbage record lengths: beyond sys.maxsize, or a short read at the end
                 self.damage = f"{file}: {_one_line(err)}"
                 return
@@ -404,7 +418,7 @@ class BagReader:
         try:
             for conn, stamp, data in self._reader.messages(connections=conns):
                 yield RawMessage(conn.topic, conn.msgtype, stamp, bytes(data))
-        except (ReaderError, OSError, ValueError, KeyError, OverflowError) as err:
+        except (ReaderError, OSError, ValueError, KeyError, OverflowError, *_ZSTD_ERRORS) as err:
             if self.recover:  # keep what came before, say why it stopped
                 self.damage = _one_line(err)
                 return
@@ -441,12 +455,33 @@ _OP_CHUNK = 0x06
 _OP_DATA_END = 0x0F
 
 
+def _zstd_errors() -> tuple[type[Exception], ...]:
+    """The errors of a damaged zstd chunk (rosbags' zstd module and mcap's zstandard)."""
+    found: list[type[Exception]] = [_zstd().ZstdError]
+    try:
+        import zstandard
+
+        found.append(zstandard.ZstdError)
+    except ImportError:  # mcap then cannot read zstd chunks either
+        pass
+    return tuple(found)
+
+
+def _zstd() -> Any:
+    """The zstd module rosbags itself uses for MCAP chunks."""
+    if sys.version_info >= (3, 14):
+        from compression import zstd  # type: ignore[import-not-found,unused-ignore]
+    else:
+        from backports import zstd  # type: ignore[import-not-found,unused-ignore]
+    return zstd
+
+
 def fill_checksums(mcap_path: Path) -> int:
     """Write the CRC-32 checksums that the rosbags MCAP writer leaves at 0 ("not computed").
 
-    Each uncompressed Chunk record (BagWriter writes no other kind) gets the CRC of its
-    records and the DataEnd record the CRC of the whole data section (the magic up to
-    DataEnd), as the MCAP specification defines them; readers (rosbags, ``mcap`` with
+    Each Chunk record (uncompressed or zstd, as BagWriter writes them) gets the CRC of its
+    uncompressed records and the DataEnd record the CRC of the whole data section (the magic
+    up to DataEnd), as the MCAP specification defines them; readers (rosbags, ``mcap`` with
     ``validate_crcs``) then detect bytes changed inside a message, not only damaged
     structure. Edits the 4-byte fields in place; the file's size and layout do not change.
 
@@ -481,15 +516,24 @@ def fill_checksums(mcap_path: Path) -> int:
                 break
             record = bytearray(f.read(length))
             if op == _OP_CHUNK:
-                # start u64, end u64, uncompressed size u64, crc u32, compression, records
+                # start u64, end u64, uncompressed size u64, crc u32, compression (u32
+                # length + name), records size u64, records (compressed)
                 name_len = int.from_bytes(record[28:32], "little")
-                if name_len == 0:  # uncompressed: BagWriter writes no other kind
-                    size = int.from_bytes(record[32:40], "little")
-                    record[24:28] = struct.pack("<I", zlib.crc32(record[40 : 40 + size]))
-                    f.seek(body + 24)
-                    f.write(record[24:28])
-                    f.seek(body + length)
-                    chunks += 1
+                name = bytes(record[32 : 32 + name_len]).decode()
+                at = 32 + name_len
+                size = int.from_bytes(record[at : at + 8], "little")
+                if name == "zstd":  # the checksum is of the uncompressed records
+                    crc = zlib.crc32(_zstd().decompress(bytes(record[at + 8 : at + 8 + size])))
+                elif not name:
+                    crc = zlib.crc32(record[at + 8 : at + 8 + size])
+                else:
+                    msg = f"{mcap_path}: chunk at byte {pos} has compression {name!r}"
+                    raise CorruptBagError(msg)
+                record[24:28] = struct.pack("<I", crc)
+                f.seek(body + 24)
+                f.write(record[24:28])
+                f.seek(body + length)
+                chunks += 1
             data_crc = zlib.crc32(record, zlib.crc32(head, data_crc))
             pos = body + length
     return chunks
@@ -549,6 +593,9 @@ def check_output(
         raise BagExistsError(OVERWRITE_MESSAGE.format(path=out))
 
 
+_ZSTD_ERRORS = _zstd_errors()
+
+
 class BagWriter:
     """Writes a rosbag2 directory (metadata.yaml + <name>.mcap) with the Jazzy typestore.
 
@@ -562,6 +609,8 @@ class BagWriter:
             nothing but rosbag2 files is replaced; anything else raises BagExistsError.
         inputs: the paths the tool reads; an output that is one of them, is inside one
             or contains one is refused, even with ``overwrite`` (see check_output).
+        compress: zstd-compress the MCAP chunks (deterministic: the same messages give
+            the same bytes); False writes them uncompressed.
 
     Raises:
         BagExistsError: ``path`` exists and ``overwrite`` is False, or it is not a bag.
@@ -574,9 +623,11 @@ class BagWriter:
         *,
         overwrite: bool = False,
         inputs: Iterable[str | os.PathLike[str]] = (),
+        compress: bool = True,
     ) -> None:
         self.path = Path(path)
         self.overwrite = overwrite
+        self.compress = compress
         self.inputs = tuple(Path(p) for p in inputs)
         self._check_target()
         self._tmpdir: Path | None = None
@@ -608,6 +659,10 @@ class BagWriter:
             version=METADATA_VERSION,
             storage_plugin=StoragePlugin.MCAP,
         )
+        if self.compress:
+            # zstd MCAP chunks ("storage" compression: metadata.yaml stays uncompressed,
+            # as Jazzy's mcap storage plugin writes it with a compression preset)
+            writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         writer.open()
         self._writer = writer
 
