@@ -29,7 +29,7 @@ from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import TwistStamped, Vector3Stamped
+from geometry_msgs.msg import TwistStamped, TwistWithCovarianceStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.duration import Duration
@@ -167,6 +167,9 @@ class OwlNode(Node):
             )  # fmt: skip
         self._marker_pub = self.create_publisher(Marker, "owl/heading_marker", reliable)
         self._dense = DensePublishers(self, self.options, reliable) if self.options.dense else None
+        self._heading_cov_pub = self.create_publisher(
+            TwistWithCovarianceStamped, "owl/heading_with_covariance", reliable
+        )
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._announce()
         self._worker = threading.Thread(target=self._run, name="owl-worker", daemon=True)
@@ -212,7 +215,8 @@ class OwlNode(Node):
         else:
             source = "default (identity)"
             log.warning(node_report.extrinsic_warning(tf_available=False))
-        pubs = [self._points_pub, self._heading_pub, self._diag_pub, self._marker_pub]
+        pubs = [self._points_pub, self._heading_pub, self._heading_cov_pub, self._diag_pub]
+        pubs.append(self._marker_pub)
         names = [p.topic_name for p in pubs + ([self._debug_pub] if self._debug_pub else [])]
         log.info(
             node_report.startup_line(
@@ -372,6 +376,8 @@ class OwlNode(Node):
         self._points_pub.publish(out.cloud)
         if out.heading is not None:
             self._heading_pub.publish(out.heading)
+        if out.heading_cov is not None:
+            self._heading_cov_pub.publish(out.heading_cov)
         done = time.monotonic_ns()
         stamp_latency = (self.get_clock().now().nanoseconds - header_to_ns(out.header)) * 1e-9
         self._pipeline.record_latency((done - out.arrival_ns) * 1e-9, stamp_latency)

@@ -49,7 +49,7 @@ import numpy.typing as npt
 
 from msg_adapters.camera_info import camera_info_to_model
 from msg_adapters.diagnostics import Level, StatusRecord
-from msg_adapters.heading import heading_to_msg
+from msg_adapters.heading import heading_to_msg, heading_to_twist_covariance
 from msg_adapters.image import compressed_to_frame, image_to_frame
 from msg_adapters.imu import imus_to_gyro
 from msg_adapters.pointcloud import frame_result_to_cloud
@@ -95,6 +95,7 @@ class Output:
     header: Any
     speed: float | None
     arrival_ns: int
+    heading_cov: Any | None = None  # TwistWithCovarianceStamped (owl/heading_with_covariance)
 
 
 @dataclass
@@ -641,7 +642,10 @@ class Pipeline:
                 self._count("frames_metric")
         else:
             self._last_empty_reason = "; ".join(result.reasons) or "no points"
-        return Output(result, cloud, heading, frame.image, header, speed, item.arrival_ns)
+        cov = None
+        if heading is not None and np.isfinite(result.heading_sigma_rad):
+            cov = heading_to_twist_covariance(result.heading, result.heading_sigma_rad, header)
+        return Output(result, cloud, heading, frame.image, header, speed, item.arrival_ns, cov)
 
     def record_latency(self, latency_s: float, stamp_latency_s: float | None = None) -> None:
         """Record one frame's arrival -> publication latency (and image stamp ->

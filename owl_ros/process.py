@@ -47,6 +47,7 @@ from msg_adapters.msgtypes import message_class
 from msg_adapters.stamps import header_to_ns
 from owl_core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from owl_ros.dense_outputs import DenseWriter
+from owl_ros.node import heading_marker
 from owl_ros.node_report import EXTRINSIC_HOWTO, unknown_parameters
 from owl_ros.params import (
     NodeOptions,
@@ -62,11 +63,15 @@ PROG = "owl_process"
 
 POINTS_TOPIC = "/owl/points"
 HEADING_TOPIC = "/owl/heading"
+HEADING_COV_TOPIC = "/owl/heading_with_covariance"
+MARKER_TOPIC = "/owl/heading_marker"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 TF_STATIC = "/tf_static"
 
 CLOUD = "sensor_msgs/msg/PointCloud2"
 VECTOR = "geometry_msgs/msg/Vector3Stamped"
+TWIST_COV = "geometry_msgs/msg/TwistWithCovarianceStamped"
+MARKER = "visualization_msgs/msg/Marker"
 DIAG = "diagnostic_msgs/msg/DiagnosticArray"
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 SPEED_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/TwistStamped")
@@ -318,9 +323,18 @@ def process_bag(
         with BagWriter(out, overwrite=opts.overwrite, inputs=[in_path]) as writer:
             writer.add_topic(POINTS_TOPIC, CLOUD, "reliable")
             writer.add_topic(HEADING_TOPIC, VECTOR, "reliable")
+            writer.add_topic(HEADING_COV_TOPIC, TWIST_COV, "reliable")
+            writer.add_topic(MARKER_TOPIC, MARKER, "reliable")
             writer.add_topic(DIAGNOSTICS_TOPIC, DIAG, "reliable")
+            ours = (
+                POINTS_TOPIC,
+                HEADING_TOPIC,
+                HEADING_COV_TOPIC,
+                MARKER_TOPIC,
+                DIAGNOSTICS_TOPIC,
+            )
             for topic in copy:
-                if topic not in (POINTS_TOPIC, HEADING_TOPIC, DIAGNOSTICS_TOPIC):
+                if topic not in ours:
                     writer.add_topic(topic, infos[topic].msgtype, infos[topic].qos_kind)
             dense = DenseWriter(node_opts, writer, canonical_cdr) if node_opts.dense else None
             writer.set_custom_data(
@@ -340,6 +354,13 @@ def process_bag(
                         writer.write_raw(
                             HEADING_TOPIC, max(stamp, 0), canonical_cdr(o.heading, VECTOR)
                         )
+                        marker = heading_marker(o.result.heading, o.header)
+                        writer.write_raw(
+                            MARKER_TOPIC, max(stamp, 0), canonical_cdr(marker, MARKER)
+                        )
+                    if o.heading_cov is not None:
+                        cov = canonical_cdr(o.heading_cov, TWIST_COV)
+                        writer.write_raw(HEADING_COV_TOPIC, max(stamp, 0), cov)
                         stamps.append(stamp)
                         headings.append(np.asarray(o.result.heading, dtype=np.float64))
                         sigmas.append(float(o.result.heading_sigma_rad))

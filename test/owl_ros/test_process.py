@@ -75,7 +75,10 @@ def test_output_readable_with_contract_fields_and_headers(
     out, summary = result
     stamps, _, _ = truth(bag)
     data = read(out)
-    assert set(data) == {"/owl/points", "/owl/heading", "/diagnostics"}
+    assert set(data) == {
+        "/owl/points", "/owl/heading", "/owl/heading_with_covariance", "/owl/heading_marker",
+        "/diagnostics",
+    }  # fmt: skip
     clouds = data["/owl/points"]
     # one cloud per frame, header = the image header, logged at the image stamp
     assert [header_to_ns(m.header) for _, _, m in clouds] == stamps
@@ -101,6 +104,25 @@ def test_output_readable_with_contract_fields_and_headers(
         v = np.array([m.vector.x, m.vector.y, m.vector.z])
         assert abs(np.linalg.norm(v) - 1) < 1e-9
         assert m.header.frame_id == "camera_optical_frame"
+    # the heading with its uncertainty: sigma^2 (I - h h^T) in the linear block
+    covs = data["/owl/heading_with_covariance"]
+    assert [t for t, _, _ in covs] == [t for t, _, _ in headings]
+    for (_, _, c), (_, _, h), sigma in zip(covs, headings, summary.heading_sigma_rad, strict=True):
+        v = np.array([h.vector.x, h.vector.y, h.vector.z])
+        lin = c.twist.twist.linear
+        assert [lin.x, lin.y, lin.z] == v.tolist() and c.header == h.header
+        cov = np.asarray(c.twist.covariance).reshape(6, 6)
+        np.testing.assert_allclose(cov[:3, :3], sigma**2 * (np.eye(3) - np.outer(v, v)))
+        assert np.trace(cov[:3, :3]) == pytest.approx(2 * sigma**2)
+    # a marker arrow along each heading (Foxglove / RViz show the heading)
+    markers = data["/owl/heading_marker"]
+    assert [t for t, _, _ in markers] == [t for t, _, _ in headings]
+    for (_, _, mk), (_, _, h) in zip(markers, headings, strict=True):
+        tip = mk.points[1]
+        np.testing.assert_allclose(
+            np.array([tip.x, tip.y, tip.z]) / np.linalg.norm([tip.x, tip.y, tip.z]),
+            [h.vector.x, h.vector.y, h.vector.z], atol=1e-12,
+        )  # fmt: skip
     _, records = msg_to_records(data["/diagnostics"][-1][2])
     names = [r.name for r in records]
     assert names == ["owl: input", "owl: processing", "owl: gyro"]
