@@ -317,6 +317,7 @@ class Pipeline:
             str(msg.distortion_model),
             tuple(float(v) for v in msg.k),
             tuple(float(v) for v in msg.d),
+            tuple(float(v) for v in msg.p),
             int(msg.binning_x),
             int(msg.binning_y),
             int(msg.roi.x_offset),
@@ -328,7 +329,7 @@ class Pipeline:
             return
         self._camera_key = key
         try:
-            model = camera_info_to_model(msg)
+            model = camera_info_to_model(msg, rectified=self.options.rectified)
         except (ValueError, OwlError) as err:
             self._camera_error = str(err)
             self._count("bad_camera_info")
