@@ -287,3 +287,12 @@ def test_launch_arguments_and_rviz_frame() -> None:
         node_parameters("1,2", "")
     rviz = (REPO / "config" / "owl.rviz").read_text()
     assert "coloured by r/|t|" in rviz and "quality" not in rviz.split("Panels:")[0]
+
+
+def test_readme_names_every_tool_and_where_it_lives() -> None:
+    readme = (REPO / "README.md").read_text()
+    missing = [name for name in console_scripts() if f"`{name}" not in readme]
+    assert not missing, f"README does not name {missing}"
+    first = readme.split("## What it is")[0]
+    assert ". .venv/bin/activate" in first and "install/setup.bash" in first
+    assert "--break-system-packages" in first and "--system-site-packages" in first
