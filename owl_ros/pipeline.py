@@ -60,6 +60,7 @@ from owl_core.engine import OwlEngine
 from owl_core.errors import OwlError
 from owl_core.geometry import quat_xyzw_to_matrix
 from owl_core.types import FrameResult, GyroSamples, PointFlag
+from owl_ros.debug_legend import draw_legend
 from owl_ros.params import NodeOptions
 
 __all__ = ["Inbox", "Output", "Pipeline", "draw_debug"]
@@ -860,8 +861,9 @@ def draw_debug(
 
     Each point is a 5x5 dot coloured by r/|t| (red near, blue far, on a log scale between
     0.5 and 20 s); suspected moving points are magenta with a white centre; the heading
-    (focus of expansion) is a green cross in a circle when it lies in front of the camera.
-    Drawing is vectorised (no loop over points).
+    (focus of expansion) is a green cross in a circle when it lies in front of the camera;
+    a colour legend sits in the bottom-left corner (owl_ros.debug_legend). Drawing is
+    vectorised (no loop over points).
     """
     img = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
     h, w = grey.shape
@@ -890,4 +892,4 @@ def draw_debug(
             size = max(6, min(h, w) // 20)
             cv2.circle(img, c, size, (0, 255, 0), 2)
             cv2.drawMarker(img, c, (0, 255, 0), cv2.MARKER_CROSS, 2 * size, 2)
-    return img
+    return draw_legend(img)  # the colour key, bottom left

@@ -40,6 +40,12 @@ from owl_ros.tools.live import LiveNode
 PROG = "owl_demo"
 
 
+#: method names, the same in the report's tables and the figures' legends.
+METHOD_NAMES = {
+    "owl": "OWL (owl_process)",
+    "cv-5pt": "OpenCV 5-point",
+    "cv-gyro": "OpenCV gyro-aided",
+}
 #: longest the demo stays silent: a step that prints nothing for this long gets a line, s.
 HEARTBEAT_S = 3.0
 
@@ -358,11 +364,11 @@ def run_demo(args: argparse.Namespace) -> Path:
     sim = bench._sim(case, prof)
     frames = bench.load_frames(sim, cache, log)
     run = bench.run_case(case, prof, frames, sim, keep_results=True)
-    rows = {"OWL (owl_process)": dict(evaluation.summary)}
+    rows = {METHOD_NAMES["owl"]: dict(evaluation.summary)}
     owl_mem = bench._method_row(run, "owl")
-    rows["OWL (owl_process)"]["fps"] = owl_mem["fps"]
-    rows["OpenCV 5-point"] = bench._method_row(run, "cv-5pt")
-    rows["OpenCV gyro-aided"] = bench._method_row(run, "cv-gyro")
+    rows[METHOD_NAMES["owl"]]["fps"] = owl_mem["fps"]
+    rows[METHOD_NAMES["cv-5pt"]] = bench._method_row(run, "cv-5pt")
+    rows[METHOD_NAMES["cv-gyro"]] = bench._method_row(run, "cv-gyro")
 
     cube_png = None
     if not args.no_cube:
@@ -377,21 +383,21 @@ def run_demo(args: argparse.Namespace) -> Path:
     figs["heading"] = plots.heading_error(
         times,
         {
-            "OWL": [owl_by_stamp.get(int(t), math.nan) for t in frames.stamps_ns],
-            "cv-5pt": [s.heading_deg for s in run.scores["cv-5pt"]],
-            "cv-gyro": [s.heading_deg for s in run.scores["cv-gyro"]],
+            METHOD_NAMES["owl"]: [owl_by_stamp.get(int(t), math.nan) for t in frames.stamps_ns],
+            METHOD_NAMES["cv-5pt"]: [s.heading_deg for s in run.scores["cv-5pt"]],
+            METHOD_NAMES["cv-gyro"]: [s.heading_deg for s in run.scores["cv-gyro"]],
         },
         fig_dir / "heading_error.png",
         title=f"Heading error over time ({args.scenario}, gyro bias {b:g} rad/s)",
     )
     figs["range"] = plots.range_scatter(
         {
-            "OWL": (
+            METHOD_NAMES["owl"]: (
                 np.concatenate([s.range_true for s in evaluation.frames]),
                 np.concatenate([s.range_est for s in evaluation.frames]),
             ),
             **{
-                m: (
+                METHOD_NAMES[m]: (
                     np.concatenate([s.range_true for s in run.scores[m]]),
                     np.concatenate([s.range_est for s in run.scores[m]]),
                 )
