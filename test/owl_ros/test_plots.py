@@ -75,9 +75,9 @@ def test_shape_constancy_titles_readable_and_panels_apart(figures, tmp_path) -> 
     (fig,) = figures
     fig.canvas.draw()
     titles = [ax.title for ax in fig.axes[:3]]
-    # no light-yellow title: HSV value x saturation keeps away from the bright end
+    # no light-yellow title: not both bright and saturated
     for t in titles:
-        h, s, v = rgb_to_hsv(np.asarray(t.get_color())[:3])
+        _, s, v = rgb_to_hsv(np.asarray(t.get_color())[:3])
         assert v < 0.9 or s < 0.3, t.get_color()
     raw, moved, front = fig.axes[3:6]
     renderer = fig.canvas.get_renderer()
