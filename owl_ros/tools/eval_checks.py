@@ -3,8 +3,9 @@
 A score that looks like a result but is not one is worse than an error:
 
 - an explicitly named points or heading topic that is not in the result bag;
-- a points topic with 0 points on every frame (nothing to score: ``owl_process`` says
-  why frames were empty);
+- a points topic named with ``--points-topic`` that has 0 points on every frame (nothing
+  to score: ``owl_process`` says why frames were empty; the default topic gets a note,
+  since a still camera has headings and a bias to score but no points);
 - a result of another bag: no result frame stamp is a truth frame stamp, or the result's
   pixels lie outside the truth images (another image size);
 - a gyro-bias error for a run without IMU (the estimate never moved from its start value):

@@ -446,8 +446,10 @@ def read_estimates(
         if bag.damage and notes is not None:  # found on opening or while reading
             notes.append(f"result bag damaged, scored what was readable: {bag.damage}")
     empty = eval_checks.check_points(path, pts_t, [a.size for a in clouds.values()])
-    if empty is not None:
+    if empty is not None and points_topic is not None:  # the topic the user asked for
         raise EvalError(empty)
+    if empty is not None and notes is not None:  # e.g. a still camera: headings, bias
+        notes.append(empty.replace(": nothing to score", ": no r/|t| to score"))
     if eval_checks.imu_was_used(inputs) is False:  # the bias never moved: not an estimate
         bias_track = []
         if notes is not None:

@@ -215,8 +215,11 @@ def test_refuses_what_it_cannot_score_honestly(truth_bag, tmp_path, capsys):
         _one_line(capsys, "topic /nope is not in result bag")
     empty = tmp_path / "empty"
     evaluate.write_result_bag(empty, [replace(r, **_no_points()) for r in good])
-    assert evaluate.main([str(empty), "--truth", str(path)]) == 2
+    named = ["--points-topic", "/owl/points"]
+    assert evaluate.main([str(empty), "--truth", str(path), *named]) == 2
     _one_line(capsys, f"has 0 points on every frame ({len(frames)} frames)")
+    notes = evaluate.evaluate(empty, path).notes  # the default topic: scored, with a note
+    assert any("0 points on every frame" in n for n in notes), notes
     shifted = tmp_path / "shifted"  # another bag: no stamp in common
     evaluate.write_result_bag(shifted, [replace(r, stamp_ns=r.stamp_ns + 1) for r in good])
     assert evaluate.main([str(shifted), "--truth", str(path)]) == 2
