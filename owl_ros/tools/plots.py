@@ -450,9 +450,14 @@ def fields(
     fig.colorbar(q, ax=axes[1], shrink=0.8, label="|omega| (1/s) (linear colour scale)")
     # arrow-length key: an arrow of the 90th-percentile length, labelled in 1/s
     axes[1].quiverkey(
-        q, 0.12, -0.04, max(ref, 1e-9), f"arrow length = {ref:.2g} 1/s", labelpos="E",
-        coordinates="axes",
+        q, 0.09, 0.045, max(ref, 1e-9), f"arrow length = {ref:.2g} 1/s", labelpos="E",
+        coordinates="axes", color="k", labelcolor="k", zorder=5,
+        fontproperties={"size": 9},
     )  # fmt: skip
+    key_box = {"facecolor": "white", "alpha": 0.8, "edgecolor": "none"}
+    axes[1].add_patch(
+        plt.Rectangle((0.0, 0.0), 0.4, 0.09, transform=axes[1].transAxes, zorder=4, **key_box)
+    )
     axes[1].set_title("perceived rotation omega = (e x t)/r, x-y part")
     foe = None
     if camera is not None and res.heading is not None and res.heading[2] > 0:
