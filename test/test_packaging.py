@@ -237,7 +237,7 @@ ROSDEP = {
     "scipy": "python3-scipy", "sensor_msgs": "sensor_msgs", "std_msgs": "std_msgs",
     "tf2_ros": "tf2_ros_py", "visualization_msgs": "visualization_msgs",
     "yaml": "python3-yaml", "rosbags": None, "mcap": None, "mcap_ros2": None,
-    "zstandard": None, "backports": None, "compression": None,
+    "zstandard": None, "backports": None, "compression": None, "ray": None,
 }  # fmt: skip
 
 
