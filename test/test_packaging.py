@@ -238,6 +238,7 @@ ROSDEP = {
     "tf2_ros": "tf2_ros_py", "visualization_msgs": "visualization_msgs",
     "yaml": "python3-yaml", "rosbags": None, "mcap": None, "mcap_ros2": None,
     "zstandard": None, "backports": None, "compression": None, "ray": None,
+    "threadpoolctl": "python3-threadpoolctl",
 }  # fmt: skip
 
 
