@@ -17,6 +17,7 @@ CONSOLE_SCRIPTS = [
     "owl_soak = owl_ros.tools.soak:main",
     "owl_batch = owl_ros.tools.batch:main",
     "owl_calibrate = owl_ros.calibrate:main",
+    "owl_diag = owl_ros.tools.diag:main",
     "owl_make_bag = bags.cli.make_bag:main",
     "owl_replay = bags.cli.replay:main",
     "owl_record = bags.cli.record:main",

@@ -26,6 +26,11 @@ class BagExistsError(BagError, FileExistsError):
     """The output path exists and overwriting was not requested (or is unsafe)."""
 
 
+class OutputOverlapError(BagExistsError):
+    """The output path is an input, lies inside one or contains one (refused even with
+    overwrite: replacing it would delete the input)."""
+
+
 class BagTopicError(BagError, KeyError):
     """A topic or message type is unknown, duplicated or not registered."""
 

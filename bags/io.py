@@ -39,6 +39,7 @@ import functools
 import os
 import shutil
 import struct
+import sys
 import tempfile
 import zlib
 from collections.abc import Iterable, Iterator
@@ -58,7 +59,15 @@ from rosbags.interfaces import (
     QosReliability,
     QosTime,
 )
-from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
+from rosbags.rosbag2 import (
+    CompressionFormat,
+    CompressionMode,
+    Reader,
+    ReaderError,
+    StoragePlugin,
+    Writer,
+    WriterError,
+)
 from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
@@ -70,6 +79,7 @@ from bags.errors import (
     BagTopicError,
     CorruptBagError,
     NotABagError,
+    OutputOverlapError,
 )
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -153,6 +163,23 @@ def _one_line(err: BaseException) -> str:
     return text or type(err).__name__
 
 
+def _mcap_custom_data(path: Path) -> dict[str, Any]:
+    """``custom_data`` of the rosbag2 metadata stored inside an MCAP file, {} if absent."""
+    import yaml
+    from mcap.reader import make_reader
+
+    try:
+        with path.open("rb") as f:
+            for record in make_reader(f).iter_metadata():
+                if record.name == "rosbag2":
+                    meta = yaml.safe_load(record.metadata.get("serialized_metadata", ""))
+                    custom = meta.get("custom_data") if isinstance(meta, dict) else None
+                    return dict(custom) if isinstance(custom, dict) else {}
+    except (McapError, OSError, ValueError, yaml.YAMLError, struct.error):
+        return {}
+    return {}
+
+
 def _has_mcap_magic(path: Path) -> bool:
     try:
         with path.open("rb") as f:
@@ -227,7 +254,9 @@ class BagReader:
         reader = Reader(target)
         try:
             reader.open()
-        except (ReaderError, OSError, KeyError, ValueError, TypeError, OverflowError) as err:
+        except (
+            ReaderError, OSError, KeyError, ValueError, TypeError, OverflowError, *_ZSTD_ERRORS
+        ) as err:  # fmt: skip
             msg = f"truncated or corrupt bag {self.path}: {_one_line(err)}"
             raise CorruptBagError(msg) from None
         self._reader = reader
@@ -268,7 +297,10 @@ class BagReader:
                         elif isinstance(record, Message) and record.channel_id in channels:
                             channel = channels[record.channel_id]
                             yield schemas.get(channel.schema_id), channel, record
-            except (McapError, OSError, ValueError, EOFError, OverflowError, struct.error) as err:
+            except (
+                McapError, OSError, ValueError, EOFError, OverflowError, struct.error,
+                *_ZSTD_ERRORS,
+            ) as err:  # fmt: skip
                 # garbage record lengths: beyond sys.maxsize, or a short read at the end
                 self.damage = f"{file}: {_one_line(err)}"
                 return
@@ -340,10 +372,14 @@ class BagReader:
 
     @property
     def custom_data(self) -> dict[str, str]:
-        """metadata.yaml ``custom_data`` (key -> string); {} for a bare or recovered .mcap."""
-        if self._reader is None:
-            return {}
-        custom = getattr(self._reader.storage.metadata, "custom", None) or {}
+        """metadata.yaml ``custom_data`` (key -> string). A bare .mcap file (or a bag
+        without metadata.yaml) gives the copy rosbag2 keeps in the MCAP ``rosbag2``
+        metadata record; {} when there is none."""
+        custom = {}
+        if self._reader is not None:
+            custom = getattr(self._reader.storage.metadata, "custom", None) or {}
+        if not custom and self._mcap_files:
+            custom = _mcap_custom_data(self._mcap_files[0])
         return {str(k): str(v) for k, v in custom.items()}
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
@@ -382,7 +418,7 @@ class BagReader:
         try:
             for conn, stamp, data in self._reader.messages(connections=conns):
                 yield RawMessage(conn.topic, conn.msgtype, stamp, bytes(data))
-        except (ReaderError, OSError, ValueError, KeyError, OverflowError) as err:
+        except (ReaderError, OSError, ValueError, KeyError, OverflowError, *_ZSTD_ERRORS) as err:
             if self.recover:  # keep what came before, say why it stopped
                 self.damage = _one_line(err)
                 return
@@ -419,12 +455,33 @@ _OP_CHUNK = 0x06
 _OP_DATA_END = 0x0F
 
 
+def _zstd_errors() -> tuple[type[Exception], ...]:
+    """The errors of a damaged zstd chunk (rosbags' zstd module and mcap's zstandard)."""
+    found: list[type[Exception]] = [_zstd().ZstdError]
+    try:
+        import zstandard
+
+        found.append(zstandard.ZstdError)
+    except ImportError:  # mcap then cannot read zstd chunks either
+        pass
+    return tuple(found)
+
+
+def _zstd() -> Any:
+    """The zstd module rosbags itself uses for MCAP chunks."""
+    if sys.version_info >= (3, 14):
+        from compression import zstd  # type: ignore[import-not-found,unused-ignore]
+    else:
+        from backports import zstd  # type: ignore[import-not-found,unused-ignore]
+    return zstd
+
+
 def fill_checksums(mcap_path: Path) -> int:
     """Write the CRC-32 checksums that the rosbags MCAP writer leaves at 0 ("not computed").
 
-    Each uncompressed Chunk record (BagWriter writes no other kind) gets the CRC of its
-    records and the DataEnd record the CRC of the whole data section (the magic up to
-    DataEnd), as the MCAP specification defines them; readers (rosbags, ``mcap`` with
+    Each Chunk record (uncompressed or zstd, as BagWriter writes them) gets the CRC of its
+    uncompressed records and the DataEnd record the CRC of the whole data section (the magic
+    up to DataEnd), as the MCAP specification defines them; readers (rosbags, ``mcap`` with
     ``validate_crcs``) then detect bytes changed inside a message, not only damaged
     structure. Edits the 4-byte fields in place; the file's size and layout do not change.
 
@@ -459,15 +516,24 @@ def fill_checksums(mcap_path: Path) -> int:
                 break
             record = bytearray(f.read(length))
             if op == _OP_CHUNK:
-                # start u64, end u64, uncompressed size u64, crc u32, compression, records
+                # start u64, end u64, uncompressed size u64, crc u32, compression (u32
+                # length + name), records size u64, records (compressed)
                 name_len = int.from_bytes(record[28:32], "little")
-                if name_len == 0:  # uncompressed: BagWriter writes no other kind
-                    size = int.from_bytes(record[32:40], "little")
-                    record[24:28] = struct.pack("<I", zlib.crc32(record[40 : 40 + size]))
-                    f.seek(body + 24)
-                    f.write(record[24:28])
-                    f.seek(body + length)
-                    chunks += 1
+                name = bytes(record[32 : 32 + name_len]).decode()
+                at = 32 + name_len
+                size = int.from_bytes(record[at : at + 8], "little")
+                if name == "zstd":  # the checksum is of the uncompressed records
+                    crc = zlib.crc32(_zstd().decompress(bytes(record[at + 8 : at + 8 + size])))
+                elif not name:
+                    crc = zlib.crc32(record[at + 8 : at + 8 + size])
+                else:
+                    msg = f"{mcap_path}: chunk at byte {pos} has compression {name!r}"
+                    raise CorruptBagError(msg)
+                record[24:28] = struct.pack("<I", crc)
+                f.seek(body + 24)
+                f.write(record[24:28])
+                f.seek(body + length)
+                chunks += 1
             data_crc = zlib.crc32(record, zlib.crc32(head, data_crc))
             pos = body + length
     return chunks
@@ -484,6 +550,52 @@ def _looks_like_bag_dir(path: Path) -> bool:
     )
 
 
+#: The one message for an existing output (every tool exits with status 1 on it).
+OVERWRITE_MESSAGE = "output {path} exists (add --overwrite to replace it)"
+
+
+def _overlap(output: Path, source: Path) -> str | None:
+    """How ``output`` overlaps ``source`` ("is", "is inside", "contains"), or None."""
+    out, src = output.resolve(), source.resolve()
+    if out == src:
+        return "is"
+    if out.is_relative_to(src):
+        return "is inside"
+    if src.is_relative_to(out):
+        return "contains"
+    return None
+
+
+def check_output(
+    output: str | os.PathLike[str],
+    inputs: Iterable[str | os.PathLike[str]] = (),
+    *,
+    overwrite: bool = False,
+) -> None:
+    """Refuse an output path before a tool reads or renders anything.
+
+    The one check every writing tool shares (owl_process, owl_make_bag, owl_record, the
+    demo, the result bags of owl_eval/owl_bench): an output that is one of ``inputs``,
+    lies inside one or contains one is refused even with ``overwrite`` (replacing it
+    would delete the input); an existing output is refused unless ``overwrite``.
+
+    Raises:
+        OutputOverlapError: the output is, is inside or contains an input.
+        BagExistsError: the output exists and ``overwrite`` is False.
+    """
+    out = Path(output)
+    for source in inputs:
+        how = _overlap(out, Path(source))
+        if how is not None:
+            msg = f"refusing to write {out}: the output {how} the input {source}"
+            raise OutputOverlapError(msg)
+    if (out.exists() or out.is_symlink()) and not overwrite:
+        raise BagExistsError(OVERWRITE_MESSAGE.format(path=out))
+
+
+_ZSTD_ERRORS = _zstd_errors()
+
+
 class BagWriter:
     """Writes a rosbag2 directory (metadata.yaml + <name>.mcap) with the Jazzy typestore.
 
@@ -495,14 +607,28 @@ class BagWriter:
         path: the output rosbag2 directory.
         overwrite: replace an existing bag at ``path``. Only a directory that holds
             nothing but rosbag2 files is replaced; anything else raises BagExistsError.
+        inputs: the paths the tool reads; an output that is one of them, is inside one
+            or contains one is refused, even with ``overwrite`` (see check_output).
+        compress: zstd-compress the MCAP chunks (deterministic: the same messages give
+            the same bytes); False writes them uncompressed.
 
     Raises:
         BagExistsError: ``path`` exists and ``overwrite`` is False, or it is not a bag.
+        OutputOverlapError: ``path`` is, is inside or contains one of ``inputs``.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        overwrite: bool = False,
+        inputs: Iterable[str | os.PathLike[str]] = (),
+        compress: bool = True,
+    ) -> None:
         self.path = Path(path)
         self.overwrite = overwrite
+        self.compress = compress
+        self.inputs = tuple(Path(p) for p in inputs)
         self._check_target()
         self._tmpdir: Path | None = None
         self._writer: Writer | None = None
@@ -512,14 +638,14 @@ class BagWriter:
         self.count = 0
 
     def _check_target(self) -> None:
+        check_output(self.path, self.inputs, overwrite=True)
         if not self.path.exists() and not self.path.is_symlink():
             if not self.path.parent.is_dir():
                 msg = f"output directory {self.path.parent} does not exist (for bag {self.path})"
                 raise BagError(msg)
             return
         if not self.overwrite:
-            msg = f"output {self.path} exists (pass overwrite / --overwrite to replace it)"
-            raise BagExistsError(msg)
+            raise BagExistsError(OVERWRITE_MESSAGE.format(path=self.path))
         if not self.path.is_dir() or self.path.is_symlink() or not _looks_like_bag_dir(self.path):
             msg = f"refusing to overwrite {self.path}: it is not a rosbag2 directory"
             raise BagExistsError(msg)
@@ -533,6 +659,10 @@ class BagWriter:
             version=METADATA_VERSION,
             storage_plugin=StoragePlugin.MCAP,
         )
+        if self.compress:
+            # zstd MCAP chunks ("storage" compression: metadata.yaml stays uncompressed,
+            # as Jazzy's mcap storage plugin writes it with a compression preset)
+            writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         writer.open()
         self._writer = writer
 

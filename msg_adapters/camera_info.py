@@ -45,20 +45,35 @@ def _distortion(model: str, d: np.ndarray[Any, np.dtype[np.float64]]) -> tuple[s
     return model, d
 
 
-def camera_info_to_model(msg: Any) -> CameraModel:
+def camera_info_to_model(msg: Any, rectified: bool = False) -> CameraModel:
     """CameraInfo -> CameraModel of the published image (binning and ROI applied).
+
+    Args:
+        msg: sensor_msgs/CameraInfo.
+        rectified: the image is the rectified one (``image_rect``): the intrinsics are
+            the left 3x3 of the projection P and there is no distortion (D is ignored);
+            else K and D describe the raw image.
 
     Raises:
         CameraInfoError: all-zero K (uncalibrated camera), unsupported distortion_model,
             wrong number of D coefficients, zero size or any other invalid calibration
             (the message names the field and value).
     """
-    k = np.asarray(msg.k, dtype=np.float64).reshape(3, 3).copy()
+    if rectified:
+        k = np.asarray(msg.p, dtype=np.float64).reshape(3, 4)[:, :3].copy()
+        field = "p"
+    else:
+        k = np.asarray(msg.k, dtype=np.float64).reshape(3, 3).copy()
+        field = "k"
     if not np.any(k):
         raise CameraInfoError(
-            f"camera_info.k is all zero (uncalibrated camera, frame_id {msg.header.frame_id!r})"
+            f"camera_info.{field} is all zero (uncalibrated camera, frame_id "
+            f"{msg.header.frame_id!r})"
         )
-    model, d = _distortion(str(msg.distortion_model), np.asarray(msg.d, dtype=np.float64))
+    if rectified:
+        model, d = "none", np.zeros(0)
+    else:
+        model, d = _distortion(str(msg.distortion_model), np.asarray(msg.d, dtype=np.float64))
     bx, by = max(1, int(msg.binning_x)), max(1, int(msg.binning_y))
     roi = msg.roi
     has_roi = int(roi.width) > 0 and int(roi.height) > 0

@@ -29,7 +29,7 @@ from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import TwistStamped, Vector3Stamped
+from geometry_msgs.msg import TwistStamped, TwistWithCovarianceStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.duration import Duration
@@ -45,7 +45,9 @@ from visualization_msgs.msg import Marker
 from msg_adapters.diagnostics import records_to_msg
 from msg_adapters.image import array_to_image
 from msg_adapters.stamps import header_to_ns
+from owl_ros import node_report
 from owl_ros.dense_outputs import DensePublishers
+from owl_ros.extrinsic_tf import TfExtrinsic, tf_available
 from owl_ros.params import PARAMS, ParameterError, build_options, descriptor, validate
 from owl_ros.pipeline import Inbox, Output, Pipeline, draw_debug
 
@@ -115,10 +117,15 @@ class OwlNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
+        node_report.coerce_overrides(self._parameter_overrides)  # 1 for 1.0, [0,0,0,1]
         values, lines = self._declare()
         lines += validate(values, unknown_ok=True) if not lines else []
+        unknown, unknown_warnings = node_report.unknown_parameters(self._parameter_overrides)
+        lines += unknown
         if lines:
             raise ParameterError(lines)
+        for line in unknown_warnings:
+            self.get_logger().warning(line)
         self.options = build_options(values)
         self._values = values
         self._lock = threading.Lock()
@@ -160,7 +167,11 @@ class OwlNode(Node):
             )  # fmt: skip
         self._marker_pub = self.create_publisher(Marker, "owl/heading_marker", reliable)
         self._dense = DensePublishers(self, self.options, reliable) if self.options.dense else None
+        self._heading_cov_pub = self.create_publisher(
+            TwistWithCovarianceStamped, "owl/heading_with_covariance", reliable
+        )
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._announce()
         self._worker = threading.Thread(target=self._run, name="owl-worker", daemon=True)
         self._worker.start()
 
@@ -185,6 +196,57 @@ class OwlNode(Node):
                 continue
             values[p.name] = _param_value(param.value)
         return values, lines
+
+    def _announce(self) -> None:
+        """Log the start-up line; choose the extrinsic source; prepare the silence watch."""
+        roles = ("image", "camera_info", "imu", "speed")
+        self._topics = {
+            role: sub.topic_name for role, (sub, _) in zip(roles, self._inputs, strict=False)
+        }
+        self._frames: dict[str, str] = {}  # role -> header.frame_id of its first message
+        self._tf: TfExtrinsic | None = None
+        log = self.get_logger()
+        rotation = self.options.engine.camera_to_imu_rotation_xyzw
+        if "camera_to_imu_rotation_xyzw" in self._parameter_overrides:
+            source = "parameter"
+        elif tf_available():
+            self._tf = TfExtrinsic(self)
+            source = "default (identity) until TF has the IMU -> camera transform"
+        else:
+            source = "default (identity)"
+            log.warning(node_report.extrinsic_warning(tf_available=False))
+        pubs = [self._points_pub, self._heading_pub, self._heading_cov_pub, self._diag_pub]
+        pubs.append(self._marker_pub)
+        names = [p.topic_name for p in pubs + ([self._debug_pub] if self._debug_pub else [])]
+        log.info(
+            node_report.startup_line(
+                self._topics, names, rotation, source, self.options.speed_source
+            )
+        )
+        self._watch = node_report.SilenceWatch(self._topics)
+        self._tf_deadline = time.monotonic() + node_report.WARN_PERIOD_S
+
+    def _check_tf(self) -> None:
+        """Once the image's and the IMU's frame_id are known, take the rotation from TF."""
+        cam, imu = self._frames.get("image"), self._frames.get("imu")
+        if self._tf is None or not cam or not imu:
+            return
+        found = self._tf.lookup(cam, imu)
+        if found is None:
+            if time.monotonic() > self._tf_deadline:
+                self._tf_deadline = time.monotonic() + 1e9  # once
+                self.get_logger().warning(
+                    f"no TF transform {imu} -> {cam} yet: "
+                    + node_report.extrinsic_warning(tf_available=True)
+                )
+            return
+        self._tf = None
+        options = self.options.with_values({"camera_to_imu_rotation_xyzw": found})
+        self.options = options
+        self._inbox.put("options", options, time.monotonic_ns())
+        self.get_logger().info(
+            f"camera_to_imu_rotation_xyzw {list(found)} from TF ({imu} -> {cam})"
+        )
 
     def _subscribe(self, kind: Any, topic: str, callback: Any, qos: QoSProfile) -> None:
         events = SubscriptionEventCallbacks(
@@ -230,12 +292,14 @@ class OwlNode(Node):
     # ------------------------------------------------------------------ callbacks
 
     def _on_image(self, msg: Any) -> None:
+        self._frames.setdefault("image", msg.header.frame_id)
         self._inbox.put_image(msg, time.monotonic_ns())
 
     def _on_camera_info(self, msg: Any) -> None:
         self._inbox.put("camera_info", msg, time.monotonic_ns())
 
     def _on_imu(self, msg: Any) -> None:
+        self._frames.setdefault("imu", msg.header.frame_id)
         self._inbox.put("imu", msg, time.monotonic_ns())
 
     def _on_speed(self, msg: Any) -> None:
@@ -312,6 +376,8 @@ class OwlNode(Node):
         self._points_pub.publish(out.cloud)
         if out.heading is not None:
             self._heading_pub.publish(out.heading)
+        if out.heading_cov is not None:
+            self._heading_cov_pub.publish(out.heading_cov)
         done = time.monotonic_ns()
         stamp_latency = (self.get_clock().now().nanoseconds - header_to_ns(out.header)) * 1e-9
         self._pipeline.record_latency((done - out.arrival_ns) * 1e-9, stamp_latency)
@@ -331,6 +397,12 @@ class OwlNode(Node):
             self._calibration_logged = True  # once: /diagnostics keeps saying it
             self.get_logger().warning(f"camera-IMU calibration: {verdict.message}")
         records += [self._dense.stage.status()] if self._dense is not None else []
+        records = node_report.name_inputs(records, self._topics, self.get_fully_qualified_name())
+        for line in self._watch.check(
+            now_mono_ns * 1e-9, self._pipeline.totals, node_report.empty_reason(records)
+        ):
+            self.get_logger().warning(line)
+        self._check_tf()
         stamp = self.get_clock().now().nanoseconds
         self._diag_pub.publish(records_to_msg(records, max(stamp, 0)))
 
@@ -390,7 +462,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             pass
         return 0
     stop = threading.Event()
-    rclpy.init(args=[PROG, *args], signal_handler_options=SignalHandlerOptions.NO)
+    bad_file = node_report.check_params_file_args(args)
+    if bad_file is not None:
+        print(f"{PROG}: error: {bad_file}", file=sys.stderr)
+        return 2
+    try:
+        rclpy.init(args=[PROG, *args], signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as err:  # rclpy's RCLError: a bad --ros-args item
+        print(f"{PROG}: error: {' '.join(str(err).split())}", file=sys.stderr)
+        return 2
     # SIGINT/SIGTERM end the spin loop below; the node then shuts down in order
     old = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}
     try:

@@ -176,6 +176,15 @@ PARAMS: tuple[Param, ...] = (
         high=1000.0,
     ),
     Param(
+        "rectified",
+        "bool",
+        False,
+        "the image topic is rectified (image_rect): the projection P of camera_info is "
+        "used and its distortion D ignored; false: a raw image, K and D are used (connect "
+        "image_raw)",
+        read_only=True,
+    ),
+    Param(
         "publish_debug_image",
         "bool",
         True,
@@ -503,6 +512,7 @@ class NodeOptions:
         speed_max_age_s: largest |speed stamp - image stamp| used, s.
         min_speed: below this the cloud stays in seconds, m/s.
         publish_debug_image: offer owl/debug_image.
+        rectified: the image is rectified: camera_info's P is used, D ignored.
         diagnostics_period_s: period of /diagnostics, s.
         dense: run the dense stage (owl_ros.dense_outputs) and offer its topics.
         dense_width, dense_height: its working size, px.
@@ -535,6 +545,7 @@ class NodeOptions:
     dense_cloud_stride: int = 4
     ttc_cone_deg: float = 10.0
     ttc_warn_s: float = 1.0
+    rectified: bool = False
 
     def with_values(self, values: Mapping[str, Any]) -> NodeOptions:
         """These options with some parameters changed (validated; ParameterError)."""
@@ -694,7 +705,11 @@ def parse_value(name: str, text: str) -> Any:
 
     p = _BY_NAME.get(name)
     if p is None:
-        raise ParameterError([f"parameter {name}: unknown parameter"])
+        import difflib
+
+        close = difflib.get_close_matches(name, list(_BY_NAME), n=1, cutoff=0.75)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise ParameterError([f"parameter {name}: unknown parameter{hint}"])
     if p.kind == "string":
         return text
     try:

@@ -49,7 +49,7 @@ import numpy.typing as npt
 
 from msg_adapters.camera_info import camera_info_to_model
 from msg_adapters.diagnostics import Level, StatusRecord
-from msg_adapters.heading import heading_to_msg
+from msg_adapters.heading import heading_to_msg, heading_to_twist_covariance
 from msg_adapters.image import compressed_to_frame, image_to_frame
 from msg_adapters.imu import imus_to_gyro
 from msg_adapters.pointcloud import frame_result_to_cloud
@@ -60,6 +60,7 @@ from owl_core.engine import OwlEngine
 from owl_core.errors import OwlError
 from owl_core.geometry import quat_xyzw_to_matrix
 from owl_core.types import FrameResult, GyroSamples, PointFlag
+from owl_ros.debug_legend import draw_legend
 from owl_ros.params import NodeOptions
 
 __all__ = ["Inbox", "Output", "Pipeline", "draw_debug"]
@@ -95,6 +96,7 @@ class Output:
     header: Any
     speed: float | None
     arrival_ns: int
+    heading_cov: Any | None = None  # TwistWithCovarianceStamped (owl/heading_with_covariance)
 
 
 @dataclass
@@ -316,6 +318,7 @@ class Pipeline:
             str(msg.distortion_model),
             tuple(float(v) for v in msg.k),
             tuple(float(v) for v in msg.d),
+            tuple(float(v) for v in msg.p),
             int(msg.binning_x),
             int(msg.binning_y),
             int(msg.roi.x_offset),
@@ -327,7 +330,7 @@ class Pipeline:
             return
         self._camera_key = key
         try:
-            model = camera_info_to_model(msg)
+            model = camera_info_to_model(msg, rectified=self.options.rectified)
         except (ValueError, OwlError) as err:
             self._camera_error = str(err)
             self._count("bad_camera_info")
@@ -641,7 +644,10 @@ class Pipeline:
                 self._count("frames_metric")
         else:
             self._last_empty_reason = "; ".join(result.reasons) or "no points"
-        return Output(result, cloud, heading, frame.image, header, speed, item.arrival_ns)
+        cov = None
+        if heading is not None and np.isfinite(result.heading_sigma_rad):
+            cov = heading_to_twist_covariance(result.heading, result.heading_sigma_rad, header)
+        return Output(result, cloud, heading, frame.image, header, speed, item.arrival_ns, cov)
 
     def record_latency(self, latency_s: float, stamp_latency_s: float | None = None) -> None:
         """Record one frame's arrival -> publication latency (and image stamp ->
@@ -855,8 +861,9 @@ def draw_debug(
 
     Each point is a 5x5 dot coloured by r/|t| (red near, blue far, on a log scale between
     0.5 and 20 s); suspected moving points are magenta with a white centre; the heading
-    (focus of expansion) is a green cross in a circle when it lies in front of the camera.
-    Drawing is vectorised (no loop over points).
+    (focus of expansion) is a green cross in a circle when it lies in front of the camera;
+    a colour legend sits in the bottom-left corner (owl_ros.debug_legend). Drawing is
+    vectorised (no loop over points).
     """
     img = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
     h, w = grey.shape
@@ -885,4 +892,4 @@ def draw_debug(
             size = max(6, min(h, w) // 20)
             cv2.circle(img, c, size, (0, 255, 0), 2)
             cv2.drawMarker(img, c, (0, 255, 0), cv2.MARKER_CROSS, 2 * size, 2)
-    return img
+    return draw_legend(img)  # the colour key, bottom left

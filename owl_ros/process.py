@@ -28,7 +28,6 @@ Python use (evaluation, demo)::
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from collections import Counter
@@ -48,6 +47,8 @@ from msg_adapters.msgtypes import message_class
 from msg_adapters.stamps import header_to_ns
 from owl_core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from owl_ros.dense_outputs import DenseWriter
+from owl_ros.node import heading_marker
+from owl_ros.node_report import EXTRINSIC_HOWTO, unknown_parameters
 from owl_ros.params import (
     NodeOptions,
     ParameterError,
@@ -62,14 +63,22 @@ PROG = "owl_process"
 
 POINTS_TOPIC = "/owl/points"
 HEADING_TOPIC = "/owl/heading"
+HEADING_COV_TOPIC = "/owl/heading_with_covariance"
+MARKER_TOPIC = "/owl/heading_marker"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 TF_STATIC = "/tf_static"
 
 CLOUD = "sensor_msgs/msg/PointCloud2"
 VECTOR = "geometry_msgs/msg/Vector3Stamped"
+TWIST_COV = "geometry_msgs/msg/TwistWithCovarianceStamped"
+MARKER = "visualization_msgs/msg/Marker"
 DIAG = "diagnostic_msgs/msg/DiagnosticArray"
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 SPEED_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/TwistStamped")
+
+
+#: what to do with a bag that has no IMU topic.
+NO_IMU_HINT = "for a bag without IMU: --imu-topic '' -p require_gyro:=false"
 
 
 def canonical_cdr(msg: Any, msgtype: str) -> bytes:
@@ -194,13 +203,29 @@ def _check_topics(bag: BagReader, opts: ProcessOptions) -> dict[str, str]:
     }
     for role, topic in wanted.items():
         if topic not in topics:
-            raise ProcessError(f"{role} topic {topic} is not in bag {bag.path} (has: {have})")
+            hint = f" ({NO_IMU_HINT})" if role == "imu" else ""
+            raise ProcessError(
+                f"{role} topic {topic} is not in bag {bag.path} (has: {have}){hint}"
+            )
         msgtype = topics[topic].msgtype
         if msgtype not in expected[role]:
             raise ProcessError(
                 f"{role} topic {topic} has type {msgtype}, expected {' or '.join(expected[role])}"
             )
     return {topic: role for role, topic in wanted.items()}
+
+
+#: no time estimate before this fraction of the messages and this many seconds: the first
+#: frames pay for lazy imports and the engine's start, which the rate would extrapolate.
+ETA_MIN_FRACTION = 0.1
+ETA_MIN_S = 1.0
+
+
+def eta_text(elapsed_s: float, fraction: float) -> str:
+    """``", ~N s left"`` from the rate so far, or "" while that rate means little."""
+    if fraction >= 1 or fraction < ETA_MIN_FRACTION or elapsed_s < ETA_MIN_S:
+        return ""
+    return f", ~{elapsed_s / fraction - elapsed_s:.0f} s left"
 
 
 class _Progress:
@@ -220,11 +245,9 @@ class _Progress:
         self.last = now
         elapsed = now - self.t0
         frac = done / self.total
-        eta = elapsed / frac - elapsed if frac > 0 else math.nan
         bar = "#" * int(30 * frac)
-        text = f"{PROG}: [{bar:<30}] {100 * frac:5.1f}%  {frames} frames  {elapsed:.1f} s" + (
-            f", ~{eta:.0f} s left" if frac < 1 else ""
-        )
+        text = f"{PROG}: [{bar:<30}] {100 * frac:5.1f}%  {frames} frames  {elapsed:.1f} s"
+        text += eta_text(elapsed, frac)
         self.stream.write(("\r" + text + "\x1b[K") if self.tty else text + "\n")
         if force and self.tty:
             self.stream.write("\n")
@@ -257,7 +280,8 @@ def process_bag(
     t_start = time.monotonic()
     opts = options if options is not None else ProcessOptions()
     out = Path(out_path)
-    BagWriter(out, overwrite=opts.overwrite)  # refuse an existing output before reading
+    # refuse an existing output, or one that is/holds/lies inside the input, before reading
+    BagWriter(out, overwrite=opts.overwrite, inputs=[in_path])
     with BagReader(in_path, recover=True) as bag:
         roles = _check_topics(bag, opts)
         infos = bag.topics
@@ -296,12 +320,21 @@ def process_bag(
         next_diag: int | None = None
         damage: str | None = None
 
-        with BagWriter(out, overwrite=opts.overwrite) as writer:
+        with BagWriter(out, overwrite=opts.overwrite, inputs=[in_path]) as writer:
             writer.add_topic(POINTS_TOPIC, CLOUD, "reliable")
             writer.add_topic(HEADING_TOPIC, VECTOR, "reliable")
+            writer.add_topic(HEADING_COV_TOPIC, TWIST_COV, "reliable")
+            writer.add_topic(MARKER_TOPIC, MARKER, "reliable")
             writer.add_topic(DIAGNOSTICS_TOPIC, DIAG, "reliable")
+            ours = (
+                POINTS_TOPIC,
+                HEADING_TOPIC,
+                HEADING_COV_TOPIC,
+                MARKER_TOPIC,
+                DIAGNOSTICS_TOPIC,
+            )
             for topic in copy:
-                if topic not in (POINTS_TOPIC, HEADING_TOPIC, DIAGNOSTICS_TOPIC):
+                if topic not in ours:
                     writer.add_topic(topic, infos[topic].msgtype, infos[topic].qos_kind)
             dense = DenseWriter(node_opts, writer, canonical_cdr) if node_opts.dense else None
             writer.set_custom_data(
@@ -321,6 +354,13 @@ def process_bag(
                         writer.write_raw(
                             HEADING_TOPIC, max(stamp, 0), canonical_cdr(o.heading, VECTOR)
                         )
+                        marker = heading_marker(o.result.heading, o.header)
+                        writer.write_raw(
+                            MARKER_TOPIC, max(stamp, 0), canonical_cdr(marker, MARKER)
+                        )
+                    if o.heading_cov is not None:
+                        cov = canonical_cdr(o.heading_cov, TWIST_COV)
+                        writer.write_raw(HEADING_COV_TOPIC, max(stamp, 0), cov)
                         stamps.append(stamp)
                         headings.append(np.asarray(o.result.heading, dtype=np.float64))
                         sigmas.append(float(o.result.heading_sigma_rad))
@@ -524,6 +564,9 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
         rotation_given = True
     if args.imu_time_offset is not None:
         values["imu_time_offset"] = args.imu_time_offset
+    typos, _ = unknown_parameters(values)  # a typo in a parameter file: refused
+    if typos:
+        raise ParameterError(typos)
     node = build_options(values)
     return ProcessOptions(
         node=node,
@@ -535,6 +578,25 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
         copy_inputs=args.copy_inputs,
         overwrite=args.overwrite,
     )
+
+
+def summary_notes(summary: Summary, opts: ProcessOptions) -> list[str]:
+    """Lines after a run: why frames had no points (counts per reason, one line), what to
+    do about a missing IMU, and the identity extrinsic when none was given or found."""
+    notes = []
+    if summary.reasons:
+        ranked = sorted(summary.reasons.items(), key=lambda kv: (-kv[1], kv[0]))
+        without = summary.frames_processed - summary.frames_with_points
+        text = ", ".join(f"{reason} {n}" for reason, n in ranked)
+        notes.append(f"frames without points: {without} of {summary.frames_processed} ({text})")
+        if not opts.imu_topic and opts.node.engine.require_gyro:
+            notes.append(f"no IMU topic and require_gyro is true: {NO_IMU_HINT}")
+    if summary.extrinsic_source == "default":
+        notes.append(
+            "warning: no camera-IMU rotation given and none in /tf_static: used the identity; "
+            + EXTRINSIC_HOWTO
+        )
+    return notes
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -566,6 +628,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 1
+    for line in summary_notes(summary, opts):
+        print(f"{PROG}: {line}", file=sys.stderr)
     if not args.quiet:
         print(
             f"{PROG}: wrote {summary.out_path}: {summary.frames_processed} frames, "

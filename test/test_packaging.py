@@ -225,3 +225,75 @@ def test_colcon_build_installs_what_ros2_run_needs(
     # with no camera_info/image yet the node must say what is missing
     messages = " ".join(status.message for status in first.status).lower()
     assert "camera_info" in messages or "image" in messages, messages
+
+
+#: import name -> package.xml exec_depend (rosdep key); None: pip only (requirements).
+ROSDEP = {
+    "ament_index_python": "ament_index_python", "builtin_interfaces": "builtin_interfaces",
+    "cv2": "python3-opencv", "diagnostic_msgs": "diagnostic_msgs",
+    "geometry_msgs": "geometry_msgs", "launch": "launch", "launch_ros": "launch_ros",
+    "matplotlib": "python3-matplotlib", "nav_msgs": "nav_msgs", "numpy": "python3-numpy",
+    "rcl_interfaces": "rcl_interfaces", "rclpy": "rclpy", "rosgraph_msgs": "rosgraph_msgs",
+    "scipy": "python3-scipy", "sensor_msgs": "sensor_msgs", "std_msgs": "std_msgs",
+    "tf2_ros": "tf2_ros_py", "visualization_msgs": "visualization_msgs",
+    "yaml": "python3-yaml", "rosbags": None, "mcap": None, "mcap_ros2": None,
+    "zstandard": None, "backports": None, "compression": None, "ray": None,
+    "threadpoolctl": "python3-threadpoolctl",
+}  # fmt: skip
+
+
+def test_package_xml_declares_what_the_code_imports() -> None:
+    import xml.etree.ElementTree as ET
+
+    ours = {"owl_core", "msg_adapters", "owl_ros", "bags"}
+    imported: set[str] = set()
+    for folder in ("owl_core", "msg_adapters", "owl_ros", "bags", "launch"):
+        for path in (REPO / folder).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Import):
+                    imported |= {a.name.split(".")[0] for a in node.names}
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    imported.add(node.module.split(".")[0])
+    third = imported - ours - set(sys.stdlib_module_names)
+    unknown = sorted(third - set(ROSDEP))
+    assert not unknown, f"imports without a known rosdep key: {unknown}"
+    deps = {e.text for e in ET.parse(REPO / "package.xml").getroot().iter("exec_depend")}
+    wanted = {ROSDEP[m] for m in third if ROSDEP[m] is not None}
+    launch = (REPO / "launch" / "owl.launch.py").read_text()
+    if 'package="rviz2"' in launch:
+        wanted.add("rviz2")
+    assert sorted(wanted - deps) == []
+
+
+def test_launch_arguments_and_rviz_frame() -> None:
+    from owl_ros.launch_args import node_parameters
+
+    text = (REPO / "launch" / "owl.launch.py").read_text()
+    declared = {
+        node.args[0].value
+        for node in ast.walk(ast.parse(text))
+        if isinstance(node, ast.Call)
+        and getattr(node.func, "id", "") == "DeclareLaunchArgument"
+        and isinstance(node.args[0], ast.Constant)
+    }
+    assert {"camera_to_imu_rotation_xyzw", "imu_time_offset", "namespace", "frame"} <= declared
+    assert '"-f", value("frame")' in text  # RViz's fixed frame is the launch argument
+    assert node_parameters("", "") == {}
+    assert node_parameters("-0.5,0.5,-0.5,0.5", "0.004") == {
+        "camera_to_imu_rotation_xyzw": [-0.5, 0.5, -0.5, 0.5],
+        "imu_time_offset": 0.004,
+    }
+    assert node_parameters("[0, 0, 0, 1]", "")["camera_to_imu_rotation_xyzw"] == [0, 0, 0, 1.0]
+    with pytest.raises(ValueError, match="camera_to_imu_rotation_xyzw: expected 4 numbers"):
+        node_parameters("1,2", "")
+    rviz = (REPO / "config" / "owl.rviz").read_text()
+    assert "coloured by r/|t|" in rviz and "quality" not in rviz.split("Panels:")[0]
+
+
+def test_readme_names_every_tool_and_where_it_lives() -> None:
+    readme = (REPO / "README.md").read_text()
+    missing = [name for name in console_scripts() if f"`{name}" not in readme]
+    assert not missing, f"README does not name {missing}"
+    first = readme.split("## What it is")[0]
+    assert ". .venv/bin/activate" in first and "install/setup.bash" in first
+    assert "--break-system-packages" in first and "--system-site-packages" in first

@@ -2,6 +2,10 @@
 
 - :class:`OneLineErrorParser`: argparse that reports a bad command line in one line
   (``PROG: error: ...``, exit 2) instead of dumping the usage text.
+  A value that starts with a minus sign and reads as a number list
+  (``--gyro-bias -0.01,0,0``, ``--camera-to-imu-rotation-xyzw -0.5,0.5,-0.5,0.5``) is
+  taken as the option's value, as ``--opt=-0.01,0,0`` is (plain argparse takes it for an
+  option and says "expected one argument").
 - :class:`StopRequest`: a SIGINT/SIGTERM handler that only sets a flag, for tools whose
   loops check it between short sleeps and then close their files cleanly.
 """
@@ -9,17 +13,70 @@
 from __future__ import annotations
 
 import argparse
+import re
+from collections.abc import Sequence
+from pathlib import Path
 from types import FrameType
-from typing import NoReturn
+from typing import Any, NoReturn
 
-__all__ = ["OneLineErrorParser", "StopRequest"]
+__all__ = ["OneLineErrorParser", "StopRequest", "user_cache_dir"]
+
+
+#: A comma-separated list of numbers whose first starts with "-" (e.g. -0.5,0.5,-1e-3).
+_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+NEGATIVE_NUMBER_LIST = re.compile(rf"-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?(?:,{_NUMBER})*")
 
 
 class OneLineErrorParser(argparse.ArgumentParser):
-    """argparse with one-line errors (no usage dump), exit status 2."""
+    """argparse with one-line errors (no usage dump), exit status 2, and negative number
+    lists accepted as option values (see the module docstring)."""
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message}\n")
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: Any = None
+    ) -> tuple[Any, list[str]]:
+        import sys
+
+        return super().parse_known_args(
+            join_negative_values(self, sys.argv[1:] if args is None else args), namespace
+        )
+
+
+def join_negative_values(parser: argparse.ArgumentParser, args: Sequence[str]) -> list[str]:
+    """``["--opt", "-0.5,1"]`` -> ``["--opt=-0.5,1"]`` for options of ``parser`` that take
+    one value; everything else unchanged (``--`` ends the options)."""
+    single = {
+        opt
+        for action in parser._actions
+        if action.nargs is None and action.option_strings
+        for opt in action.option_strings
+    }
+    out: list[str] = []
+    items = list(args)
+    i = 0
+    while i < len(items):
+        item = items[i]
+        if item == "--":
+            out += items[i:]
+            break
+        if item in single and i + 1 < len(items) and NEGATIVE_NUMBER_LIST.fullmatch(items[i + 1]):
+            out.append(f"{item}={items[i + 1]}")
+            i += 2
+            continue
+        out.append(item)
+        i += 1
+    return out
+
+
+def user_cache_dir(name: str) -> Path:
+    """``$XDG_CACHE_HOME/owl_ros/<name>`` (default ``~/.cache/owl_ros/<name>``): where tools
+    keep re-creatable files, instead of a directory below wherever they are run."""
+    import os
+
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "owl_ros" / name
 
 
 class StopRequest:

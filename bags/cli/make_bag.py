@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from bags.cli import OneLineErrorParser
-from bags.errors import BagError
+from bags.errors import BagError, ScenarioError
 from bags.io import BagWriter, typestore
 from bags.sim import scenarios
 from bags.sim.scenarios import CAMERA_FRAME, IMU_FRAME, Frame, SimOptions, Simulation
@@ -367,9 +367,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         count = write_bag(
             sim, args.out_bag, overwrite=args.overwrite, progress=not args.quiet, custom=custom
         )
-    except (BagError, OwlError) as err:
+    except (ScenarioError, OwlError) as err:  # a bad option value
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
+    except BagError as err:  # the output exists / cannot be written: as every tool, 1
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted, nothing written", file=sys.stderr)
         return 130

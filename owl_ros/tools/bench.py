@@ -2,8 +2,8 @@
 
 For each standard case (a named scenario from :mod:`bags.sim.scenarios`, with or without a
 constant gyro bias) the frames are rendered in memory (no bags, no DDS) or loaded from the
-cache (``results/cache``; the images do not depend on the IMU, so the biased and unbiased
-rows share them). Then one pass over the frames:
+cache (``~/.cache/owl_ros/frames``, see ``--cache-dir``; the images do not depend on the
+IMU, so the biased and unbiased rows share them). Then one pass over the frames:
 
 1. the OWL engine (:class:`owl_core.engine.OwlEngine`) processes the image and the gyro;
 2. on exactly the engine's tracks of that frame, the baseline runs twice
@@ -44,7 +44,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from bags.cli import OneLineErrorParser
+from bags.cli import OneLineErrorParser, user_cache_dir
 from bags.errors import BagError
 from bags.sim import scenarios
 from bags.sim.scenarios import SimOptions, Simulation
@@ -580,7 +580,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="stage timers: the process's CPU time (default; independent of other load) "
         "or wall time",
     )
-    p.add_argument("--cache-dir", default="results/cache", help="rendered-frame cache")
+    p.add_argument(
+        "--cache-dir",
+        default=None,
+        help="rendered-frame cache (default $XDG_CACHE_HOME/owl_ros/frames, else "
+        "~/.cache/owl_ros/frames; said on stderr)",
+    )
     p.add_argument("--no-cache", action="store_true", help="render without reading/writing")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     return p
@@ -622,7 +627,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             if not args.quiet:
                 print(f"{PROG}: {text}", file=sys.stderr, flush=True)
 
-        cache = None if args.no_cache else Path(args.cache_dir)
+        cache = None if args.no_cache else Path(args.cache_dir or user_cache_dir("frames"))
+        log(f"frame cache: {cache}" if cache is not None else "frame cache: off")
         doc = run_bench(profile, cache, log)
     except (ToolError, BagError, OwlError, OSError) as err:
         print(f"{PROG}: error: {' '.join(str(err).split())}", file=sys.stderr)

@@ -23,6 +23,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -39,22 +40,59 @@ from owl_ros.tools.live import LiveNode
 PROG = "owl_demo"
 
 
+#: method names, the same in the report's tables and the figures' legends.
+METHOD_NAMES = {
+    "owl": "OWL (owl_process)",
+    "cv-5pt": "OpenCV 5-point",
+    "cv-gyro": "OpenCV gyro-aided",
+}
+#: longest the demo stays silent: a step that prints nothing for this long gets a line, s.
+HEARTBEAT_S = 3.0
+
+
 class _Log:
-    def __init__(self, steps: int, quiet: bool) -> None:
+    """Step lines on stderr, and (``start_heartbeat``) a "still working" line whenever
+    nothing was printed for ``heartbeat_s`` seconds."""
+
+    def __init__(self, steps: int, quiet: bool, heartbeat_s: float = HEARTBEAT_S) -> None:
         self.steps = steps
         self.quiet = quiet
         self.t0 = time.monotonic()
         self.k = 0
+        self.heartbeat_s = heartbeat_s
+        self.last = self.t0
+        self.current = ""
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
 
     def step(self, text: str) -> None:
         self.k += 1
+        self.current = f"[{self.k}/{self.steps}]"
         self(f"[{self.k}/{self.steps}] {text}")
 
     def __call__(self, text: str) -> None:
-        if not self.quiet:
-            print(
-                f"{PROG} {time.monotonic() - self.t0:5.1f} s: {text}", file=sys.stderr, flush=True
-            )
+        with self._lock:
+            self.last = time.monotonic()
+            if not self.quiet:
+                print(f"{PROG} {self.last - self.t0:5.1f} s: {text}", file=sys.stderr, flush=True)
+
+    def start_heartbeat(self) -> None:
+        """Print a line for a step that has been silent for ``heartbeat_s``."""
+
+        def beat() -> None:
+            while not self._stop.wait(self.heartbeat_s / 4):
+                if time.monotonic() - self.last >= self.heartbeat_s:
+                    self(f"{self.current} still working")
+
+        self._thread = threading.Thread(target=beat, name="demo-heartbeat", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """End the heartbeat."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -293,6 +331,7 @@ def run_demo(args: argparse.Namespace) -> Path:
     work.mkdir(parents=True, exist_ok=True)
     fig_dir.mkdir(parents=True, exist_ok=True)
     log = _Log(5 if args.no_cube else 6, args.quiet)
+    log.start_heartbeat()  # a daemon thread: ends with the process on an error
     in_bag, owl_bag = work / "input", work / "owl"
 
     log.step(
@@ -325,11 +364,11 @@ def run_demo(args: argparse.Namespace) -> Path:
     sim = bench._sim(case, prof)
     frames = bench.load_frames(sim, cache, log)
     run = bench.run_case(case, prof, frames, sim, keep_results=True)
-    rows = {"OWL (owl_process)": dict(evaluation.summary)}
+    rows = {METHOD_NAMES["owl"]: dict(evaluation.summary)}
     owl_mem = bench._method_row(run, "owl")
-    rows["OWL (owl_process)"]["fps"] = owl_mem["fps"]
-    rows["OpenCV 5-point"] = bench._method_row(run, "cv-5pt")
-    rows["OpenCV gyro-aided"] = bench._method_row(run, "cv-gyro")
+    rows[METHOD_NAMES["owl"]]["fps"] = owl_mem["fps"]
+    rows[METHOD_NAMES["cv-5pt"]] = bench._method_row(run, "cv-5pt")
+    rows[METHOD_NAMES["cv-gyro"]] = bench._method_row(run, "cv-gyro")
 
     cube_png = None
     if not args.no_cube:
@@ -344,21 +383,21 @@ def run_demo(args: argparse.Namespace) -> Path:
     figs["heading"] = plots.heading_error(
         times,
         {
-            "OWL": [owl_by_stamp.get(int(t), math.nan) for t in frames.stamps_ns],
-            "cv-5pt": [s.heading_deg for s in run.scores["cv-5pt"]],
-            "cv-gyro": [s.heading_deg for s in run.scores["cv-gyro"]],
+            METHOD_NAMES["owl"]: [owl_by_stamp.get(int(t), math.nan) for t in frames.stamps_ns],
+            METHOD_NAMES["cv-5pt"]: [s.heading_deg for s in run.scores["cv-5pt"]],
+            METHOD_NAMES["cv-gyro"]: [s.heading_deg for s in run.scores["cv-gyro"]],
         },
         fig_dir / "heading_error.png",
         title=f"Heading error over time ({args.scenario}, gyro bias {b:g} rad/s)",
     )
     figs["range"] = plots.range_scatter(
         {
-            "OWL": (
+            METHOD_NAMES["owl"]: (
                 np.concatenate([s.range_true for s in evaluation.frames]),
                 np.concatenate([s.range_est for s in evaluation.frames]),
             ),
             **{
-                m: (
+                METHOD_NAMES[m]: (
                     np.concatenate([s.range_true for s in run.scores[m]]),
                     np.concatenate([s.range_est for s in run.scores[m]]),
                 )
@@ -425,6 +464,7 @@ def run_demo(args: argparse.Namespace) -> Path:
             indent=1,
         )
     )
+    log.stop()
     return report
 
 

@@ -51,6 +51,7 @@ import numpy.typing as npt
 from bags.cli import OneLineErrorParser
 from bags.errors import BagError
 from bags.io import BagReader
+from owl_ros.tools import eval_checks
 from owl_ros.tools.errors import EvalError, ToolError
 
 PROG = "owl_eval"
@@ -402,6 +403,9 @@ def read_estimates(
 
     with BagReader(path, recover=True) as bag:
         topics = bag.topics
+        named = eval_checks.check_named_topics(path, topics, points_topic, heading_topic)
+        if named is not None:
+            raise EvalError(named)
         pts_t = _pick(topics, POINTS_TOPICS, points_topic)
         head_t = _pick(topics, HEADING_TOPICS, heading_topic)
         if pts_t is None and head_t is None:
@@ -416,6 +420,7 @@ def read_estimates(
         clouds: dict[int, Any] = {}
         headings: dict[int, FloatArray] = {}
         bias_track: list[tuple[int, FloatArray]] = []
+        inputs: list[dict[str, str]] = []  # values of the "owl: input" statuses
         for raw in bag.messages(read):
             msg = _rclpy_msg(bag, raw)
             if raw.topic == pts_t:
@@ -430,6 +435,8 @@ def read_estimates(
                 _, records = msg_to_records(msg)
                 for rec in records:
                     values = rec.value_map()
+                    if rec.name.endswith(": input"):
+                        inputs.append(values)
                     if all(k in values for k in BIAS_KEYS):
                         try:
                             b = np.array([float(values[k]) for k in BIAS_KEYS])
@@ -438,6 +445,15 @@ def read_estimates(
                         bias_track.append((raw.log_time_ns, b))
         if bag.damage and notes is not None:  # found on opening or while reading
             notes.append(f"result bag damaged, scored what was readable: {bag.damage}")
+    empty = eval_checks.check_points(path, pts_t, [a.size for a in clouds.values()])
+    if empty is not None and points_topic is not None:  # the topic the user asked for
+        raise EvalError(empty)
+    if empty is not None and notes is not None:  # e.g. a still camera: headings, bias
+        notes.append(empty.replace(": nothing to score", ": no r/|t| to score"))
+    if eval_checks.imu_was_used(inputs) is False:  # the bias never moved: not an estimate
+        bias_track = []
+        if notes is not None:
+            notes.append("result had no IMU samples: gyro-bias error not scored")
     stamps = sorted(set(clouds) | set(headings))
     bias_t = np.array([t for t, _ in bias_track], dtype=np.int64)
     # Diagnostics are logged on the bag clock (owl_process) or on the recorder's wall clock
@@ -669,6 +685,26 @@ class Evaluation:
         }
 
 
+def _check_same_recording(
+    result_path: str | Path,
+    truth_path: str | Path,
+    estimates: dict[int, Estimate],
+    truth_stamps: list[int],
+    truth_size: tuple[int, int] | None,
+) -> None:
+    """EvalError when the result is of another bag (stamps, image size)."""
+    pixels = [e.pixels for e in estimates.values() if e.pixels.size]
+    top = None
+    if pixels:
+        both = np.concatenate(pixels)
+        top = (float(both[:, 0].max()), float(both[:, 1].max()))
+    why = eval_checks.check_against_truth(
+        result_path, truth_path, sorted(estimates), truth_stamps, top, truth_size
+    )
+    if why is not None:
+        raise EvalError(why)
+
+
 def evaluate(
     result_path: str | Path,
     truth_path: str | Path,
@@ -696,9 +732,15 @@ def evaluate(
         notes.append(f"range_over_speed {NO_RANGE}")
     has_mask = truth_has_mask(truth_path)
     scores: list[FrameScore] = []
+    every = dict(estimates)
+    truth_stamps: list[int] = []
+    truth_size: tuple[int, int] | None = None
     t0 = time.monotonic()
     last = t0
     for truth in iter_truth(truth_path):
+        truth_stamps.append(truth.stamp_ns)
+        if truth.range_m is not None:
+            truth_size = (truth.range_m.shape[1], truth.range_m.shape[0])
         frame_bias = bias_track.get(truth.stamp_ns) if bias_track else truth_bias
         scores.append(score_frame(estimates.pop(truth.stamp_ns, None), truth, frame_bias))
         if progress and time.monotonic() - last > 2.0:
@@ -706,6 +748,7 @@ def evaluate(
             print(f"{PROG}: {len(scores)} frames scored", file=sys.stderr, flush=True)
     if not scores:
         raise EvalError(f"truth bag {truth_path} has no complete ground-truth frame")
+    _check_same_recording(result_path, truth_path, every, truth_stamps, truth_size)
     if estimates:
         notes.append(f"{len(estimates)} result frames have no ground truth (ignored)")
     summary = summarize(scores, has_mask)

@@ -36,9 +36,12 @@ from typing import Any
 
 import numpy as np
 
+from bags.cli import OneLineErrorParser
 from owl_ros.tools.live import LiveNode
 
 PROG = "owl_latency"
+#: measure()'s default warm-up before the window, s.
+WARMUP_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -159,7 +162,7 @@ def measure(
     clip: _Clip,
     speed: float = 1.0,
     seconds: float = 10.0,
-    warmup_s: float = 2.0,
+    warmup_s: float = WARMUP_S,
     max_features: int = 1000,
     domain: int | None = None,
     node_args: Sequence[str] = (),
@@ -340,17 +343,22 @@ def _run_case(name: str, args: argparse.Namespace, node_args: list[str]) -> None
         print(json.dumps({"case": name, "median_of": args.runs, **med, "meets": ok}), flush=True)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point; prints one JSON object per measured speed (or case run)."""
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
-    p.add_argument("--scenario", default="street")
-    p.add_argument("--width", type=int, default=640)
-    p.add_argument("--height", type=int, default=480)
-    p.add_argument("--rate", type=float, default=30.0, help="clip frame rate, Hz")
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line interface (every option with its help)."""
+    p = OneLineErrorParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenario", default="street", help="scenario (owl_make_bag --list)")
+    p.add_argument("--width", type=int, default=640, help="image width, px (default 640)")
+    p.add_argument("--height", type=int, default=480, help="image height, px (default 480)")
+    p.add_argument("--rate", type=float, default=30.0, help="clip frame rate, Hz (default 30)")
     p.add_argument("--clip-seconds", type=float, default=2.0, help="rendered clip, s")
     p.add_argument("--seconds", type=float, default=10.0, help="measurement window, s")
-    p.add_argument("--max-features", type=int, default=1000)
-    p.add_argument("--speed", type=float, nargs="+", default=[1.0], help="rate factors")
+    p.add_argument(
+        "--max-features", type=int, default=1000, help="owl_node max_features (default 1000)"
+    )
+    p.add_argument(
+        "--speed", type=float, nargs="+", default=[1.0],
+        help="rate factors: the clip is played this many times faster (default 1)",
+    )  # fmt: skip
     p.add_argument(
         "-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
         help="extra owl_node parameter, repeatable",
@@ -370,17 +378,36 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="also subscribe to this sensor_msgs/Image topic of the node (e.g. "
         "/owl/range_over_speed with -p dense:=true), repeatable",
     )  # fmt: skip
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; prints one JSON object per measured speed or case run (progress on
+    stderr)."""
+    p = build_parser()
     args = p.parse_args(argv)
     if args.runs < 1:
         p.error(f"--runs must be >= 1, got {args.runs}")
+
+    def say(text: str) -> None:
+        if not args.quiet:
+            print(f"{PROG}: {text}", file=sys.stderr, flush=True)
+
     if args.case:
         node_args = [x for item in args.param for x in ("-p", item)]
         for name in args.case:
+            say(f"case {name}: {args.runs} run(s) of about {args.seconds + WARMUP_S + 3:.0f} s")
             _run_case(name, args, node_args)
         return 0
+    say(f"rendering {args.clip_seconds:g} s of {args.scenario} at {args.width}x{args.height}")
     clip = render_clip(args.scenario, args.clip_seconds, args.width, args.height, args.rate)
-    for speed in args.speed:
+    for i, speed in enumerate(args.speed, 1):
         node_args = [x for item in args.param for x in ("-p", item)]
+        say(
+            f"[{i}/{len(args.speed)}] {args.rate * speed:g} Hz input: starting owl_node, then "
+            f"about {args.seconds + WARMUP_S + 3:.0f} s of replay"
+        )
         m = measure(
             clip,
             speed,
@@ -388,6 +415,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             max_features=args.max_features,
             node_args=node_args,
             image_topics=args.subscribe_image,
+        )
+        say(
+            f"[{i}/{len(args.speed)}] {m.clouds}/{m.images_sent} clouds, latency p50 "
+            f"{m.latency_ms_p50:.0f} ms"
         )
         print(json.dumps(asdict(m)), flush=True)
     return 0

@@ -68,6 +68,13 @@ def _l_scale(lv: FloatArray) -> dict[str, Any]:
     return {"cmap": "coolwarm", "vmin": -lim, "vmax": lim}
 
 
+def _l_label(scale: Mapping[str, Any], text: str) -> str:
+    """Colour-bar label for L, saying when the colour scale is not linear."""
+    if isinstance(scale.get("norm"), PowerNorm):
+        return f"{text} (square-root colour scale)"
+    return f"{text} (linear colour scale)"
+
+
 def _static(res: FrameResult) -> npt.NDArray[np.bool_]:
     return (np.asarray(res.flags) & int(PointFlag.MOVING)) == 0
 
@@ -93,7 +100,8 @@ def shape_constancy(
     """
     k = len(results)
     cmap = plt.get_cmap("viridis")
-    colors = [cmap(i / max(k - 1, 1)) for i in range(k)]
+    # up to 0.8 of viridis: its light yellow end is unreadable as title text on white
+    colors = [cmap(0.8 * i / max(k - 1, 1)) for i in range(k)]
     fig = plt.figure(figsize=(15, 8.6))
     grid = fig.add_gridspec(2, 12 * k, height_ratios=[1, 2.1])
     allpx = np.concatenate([r.pixels[sel] for r, sel in zip(results, selections, strict=True)])
@@ -111,10 +119,11 @@ def shape_constancy(
             ax.set_ylim(min(box[2], img.shape[0] - 1), max(box[3], 0))
         ax.set_title(f"t = {t:.1f} s: {int(sel.sum())} points", color=colors[i])
         ax.set_axis_off()
-    third = 4 * k
-    raw = fig.add_subplot(grid[1, :third])
-    moved = fig.add_subplot(grid[1, third : 2 * third])
-    front = fig.add_subplot(grid[1, 2 * third :])
+    # the three views in a row of their own, spaced so that each keeps its axis labels
+    bottom = grid[1, :].subgridspec(1, 3, wspace=0.32)
+    raw = fig.add_subplot(bottom[0, 0])
+    moved = fig.add_subplot(bottom[0, 1])
+    front = fig.add_subplot(bottom[0, 2])
     t0 = times_s[0]
     every: list[FloatArray] = []
     for i, res in enumerate(results):
@@ -391,8 +400,9 @@ def scaled_cloud(res: FrameResult, path: str | Path, title: str = "") -> Path:
     top.set_xlabel("x right (s)")
     top.set_ylabel("z forward (s)")
     top.set_title("from above")
-    top.legend(loc="lower right", fontsize=8)
-    fig.colorbar(sc, ax=[ax, top], shrink=0.75, label="looming L (1/s)")
+    # below the axes: inside, it covered the camera marker at the origin
+    top.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, fontsize=8)
+    fig.colorbar(sc, ax=[ax, top], shrink=0.75, label=_l_label(scale, "looming L (1/s)"))
     fig.suptitle(
         title or f"Scaled point cloud e * r/|t| in seconds ({pts.shape[0]} points), coloured by L",
         fontsize=12,
@@ -414,8 +424,9 @@ def fields(
     om = res.omega[keep]
     fig, axes = plt.subplots(1, 2, figsize=(15, 5.2), layout="constrained")
     axes[0].imshow(image, cmap="gray", alpha=0.55)
-    s0 = axes[0].scatter(*px.T, c=lv, s=16, edgecolors="none", **_l_scale(lv))
-    fig.colorbar(s0, ax=axes[0], shrink=0.8, label="L (1/s)")
+    lscale = _l_scale(lv)
+    s0 = axes[0].scatter(*px.T, c=lv, s=16, edgecolors="none", **lscale)
+    fig.colorbar(s0, ax=axes[0], shrink=0.8, label=_l_label(lscale, "L (1/s)"))
     axes[0].set_title("looming L = (t.e)/r: how fast each point approaches")
     axes[1].imshow(image, cmap="gray", alpha=0.55)
     mag = np.linalg.norm(om, axis=1)
@@ -436,7 +447,17 @@ def fields(
         headwidth=3.5,
         clim=(0, float(np.nanpercentile(mag, 98)) if mag.size else 1),
     )
-    fig.colorbar(q, ax=axes[1], shrink=0.8, label="|omega| (1/s)")
+    fig.colorbar(q, ax=axes[1], shrink=0.8, label="|omega| (1/s) (linear colour scale)")
+    # arrow-length key: an arrow of the 90th-percentile length, labelled in 1/s
+    axes[1].quiverkey(
+        q, 0.09, 0.045, max(ref, 1e-9), f"arrow length = {ref:.2g} 1/s", labelpos="E",
+        coordinates="axes", color="k", labelcolor="k", zorder=5,
+        fontproperties={"size": 9},
+    )  # fmt: skip
+    key_box = {"facecolor": "white", "alpha": 0.8, "edgecolor": "none"}
+    axes[1].add_patch(
+        plt.Rectangle((0.0, 0.0), 0.4, 0.09, transform=axes[1].transAxes, zorder=4, **key_box)
+    )
     axes[1].set_title("perceived rotation omega = (e x t)/r, x-y part")
     foe = None
     if camera is not None and res.heading is not None and res.heading[2] > 0:

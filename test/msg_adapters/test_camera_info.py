@@ -96,3 +96,33 @@ def test_wrong_coefficient_count_and_zero_size_are_camera_info_errors():
     info.width = 0
     with pytest.raises(CameraInfoError, match="width must be positive, got 0"):
         camera_info_to_model(info)
+
+
+def test_rectified_input_uses_p_and_ignores_d():
+    model = CameraModel(320, 240, K, np.array(MODELS["plumb_bob"]), "plumb_bob")
+    info = camera_model_to_info(model, make_header(7, "cam_optical"))
+    p = np.array([[380.0, 0.0, 158.0, 0.0], [0.0, 380.0, 121.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    info.p = p.reshape(12)
+    raw = camera_info_to_model(info)
+    assert raw.distortion_model == "plumb_bob"
+    np.testing.assert_array_equal(raw.K, K)
+    rect = camera_info_to_model(info, rectified=True)
+    assert rect.distortion_model == "none" and rect.D.size == 0
+    np.testing.assert_array_equal(rect.K, p[:, :3])
+    info.p = np.zeros(12)
+    with pytest.raises(CameraInfoError, match=r"camera_info\.p is all zero"):
+        camera_info_to_model(info, rectified=True)
+
+
+def test_pipeline_rectified_parameter_takes_p():
+    from owl_ros.params import build_options
+    from owl_ros.pipeline import Pipeline
+
+    model = CameraModel(320, 240, K, np.array(MODELS["plumb_bob"]), "plumb_bob")
+    info = camera_model_to_info(model, make_header(7, "cam_optical"))
+    info.p = np.array([[380.0, 0, 158, 0], [0, 380.0, 121, 0], [0, 0, 1, 0]]).reshape(12)
+    for rectified, fx, dist in ((False, 400.0, "plumb_bob"), (True, 380.0, "none")):
+        pipe = Pipeline(build_options({"rectified": rectified}))
+        pipe.add_camera_info(info)
+        assert pipe.camera is not None
+        assert (pipe.camera.K[0, 0], pipe.camera.distortion_model) == (fx, dist)

@@ -104,3 +104,15 @@ def test_cli_json_and_errors(capsys, tmp_path):
     assert bench.main(["--quick", "--features", "0", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--features" in err and "0" in err
+
+
+def test_cache_goes_to_the_user_cache_dir_and_is_named(tmp_path, monkeypatch, capsys):
+    run = tmp_path / "somewhere"
+    run.mkdir()
+    monkeypatch.chdir(run)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    args = ["--quick", "--cases", "still", "--seconds", "0.2", "--features", "40", "--json"]
+    assert bench.main(args) == 0
+    cache = tmp_path / "xdg" / "owl_ros" / "frames"
+    assert f"owl_bench: frame cache: {cache}\n" in capsys.readouterr().err
+    assert list(cache.glob("still_320x240_*.npz")) and list(run.iterdir()) == []

@@ -80,3 +80,17 @@ def test_demo_live_over_dds(tmp_path, capsys, ros_domain_env):
     assert owl["heading_frames"] >= 8
     assert owl["heading_deg_median"] < 5.0
     assert "owl_node over DDS" in (tmp_path / "report.md").read_text()
+
+
+def test_demo_log_is_never_silent_for_long(capsys) -> None:
+    import time
+
+    log = demo._Log(2, quiet=False, heartbeat_s=0.2)
+    log.start_heartbeat()
+    log.step("a slow step")
+    time.sleep(0.75)
+    log.stop()
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0].endswith("[1/2] a slow step")
+    beats = [ln for ln in lines[1:] if ln.endswith("[1/2] still working")]
+    assert 2 <= len(beats) == len(lines) - 1, lines

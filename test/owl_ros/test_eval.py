@@ -194,3 +194,64 @@ def test_truncated_result_bag_is_scored_up_to_the_damage(truth_bag, tmp_path):
     assert any("damaged" in n for n in out.notes)
     assert 0 < out.summary["heading_frames"] < len(frames)
     assert out.summary["heading_deg_median"] == pytest.approx(HEADING_OFFSET_DEG, abs=1e-9)
+
+
+def _one_line(capsys, expect):
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert err.startswith("owl_eval: error: ") and expect in err, err
+
+
+def test_refuses_what_it_cannot_score_honestly(truth_bag, tmp_path, capsys):
+    from dataclasses import replace
+
+    path, _, frames = truth_bag
+    rng = np.random.default_rng(3)
+    good = [wrong_result(f, rng)[0] for f in frames]
+    result = tmp_path / "result"
+    evaluate.write_result_bag(result, good)
+    for opt in ("--points-topic", "--heading-topic"):
+        assert evaluate.main([str(result), "--truth", str(path), opt, "/nope"]) == 2
+        _one_line(capsys, "topic /nope is not in result bag")
+    empty = tmp_path / "empty"
+    evaluate.write_result_bag(empty, [replace(r, **_no_points()) for r in good])
+    named = ["--points-topic", "/owl/points"]
+    assert evaluate.main([str(empty), "--truth", str(path), *named]) == 2
+    _one_line(capsys, f"has 0 points on every frame ({len(frames)} frames)")
+    notes = evaluate.evaluate(empty, path).notes  # the default topic: scored, with a note
+    assert any("0 points on every frame" in n for n in notes), notes
+    shifted = tmp_path / "shifted"  # another bag: no stamp in common
+    evaluate.write_result_bag(shifted, [replace(r, stamp_ns=r.stamp_ns + 1) for r in good])
+    assert evaluate.main([str(shifted), "--truth", str(path)]) == 2
+    _one_line(capsys, "a result of another bag")
+    wide = tmp_path / "wide"  # another image size: pixels beyond the 160x120 truth
+    evaluate.write_result_bag(wide, [replace(r, pixels=r.pixels * 2.0 + 1.0) for r in good])
+    assert evaluate.main([str(wide), "--truth", str(path)]) == 2
+    _one_line(capsys, "outside the 160x120 images")
+    # the truth given as the bag's bare .mcap file: its bias is read all the same
+    (mcap,) = path.glob("*.mcap")
+    out = evaluate.evaluate(result, mcap)
+    assert out.summary["truth_gyro_bias_rad_s"] == pytest.approx(list(BIAS))
+    assert out.summary["bias_error_final_rad_s"] == pytest.approx(0.001, abs=1e-12)
+
+
+def _no_points():
+    z = np.zeros((0, 3))
+    return {
+        "pixels": np.zeros((0, 2)), "bearings": z, "looming": np.zeros(0), "omega": z,
+        "rot": np.zeros((0, 4)), "range_over_speed": np.zeros(0), "points": z,
+        "quality": np.zeros(0), "ids": np.zeros(0, dtype=np.uint32),
+        "flags": np.zeros(0, dtype=np.uint8),
+    }  # fmt: skip
+
+
+def test_run_without_imu_has_no_bias_error(truth_bag, tmp_path):
+    from owl_ros.params import build_options
+    from owl_ros.process import ProcessOptions, process_bag
+
+    path, _, _ = truth_bag
+    opts = ProcessOptions(node=build_options({"require_gyro": False}), imu_topic="")
+    process_bag(path, tmp_path / "owl", opts)
+    out = evaluate.evaluate(tmp_path / "owl", path)
+    assert out.summary["bias_error_final_rad_s"] is None
+    assert "result had no IMU samples: gyro-bias error not scored" in out.notes

@@ -1,12 +1,17 @@
-"""owl_latency's standard cases and their target checks (no DDS: the arithmetic only)."""
+"""owl_latency's standard cases and their target checks (no DDS: the arithmetic only), its
+command line, and the help of every tool's options."""
 
 from __future__ import annotations
 
+import argparse
 from dataclasses import replace
 
 import pytest
 
-from owl_ros.tools import latency
+from bags.cli import make_bag
+from owl_ros import process
+from owl_ros.tools import bench, demo, latency, soak
+from owl_ros.tools import evaluate as ev
 from owl_ros.tools.latency import CASES, Measurement, median_measurement, meets
 
 
@@ -57,3 +62,22 @@ def test_runs_must_be_positive(capsys: pytest.CaptureFixture[str]) -> None:
         latency.main(["--case", "vga30", "--runs", "0"])
     assert err.value.code == 2
     assert "--runs must be >= 1, got 0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("module", [latency, process, ev, bench, demo, soak, make_bag])
+def test_every_option_has_help(module) -> None:
+    parser = module.build_parser()
+    missing = [
+        a.option_strings or a.dest
+        for a in parser._actions
+        if not isinstance(a, argparse._HelpAction) and not a.help
+    ]
+    assert missing == [], f"{parser.prog}: options without help: {missing}"
+
+
+def test_latency_one_line_errors(capsys) -> None:
+    with pytest.raises(SystemExit) as done:
+        latency.build_parser().parse_args(["--rate", "x"])
+    assert done.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("owl_latency: error:")

@@ -119,6 +119,7 @@ def test_descriptors_carry_ranges_and_read_only() -> None:
         "speed_topic",
         "publish_debug_image",
         "dense",
+        "rectified",
     }
 
 

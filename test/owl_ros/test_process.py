@@ -75,7 +75,10 @@ def test_output_readable_with_contract_fields_and_headers(
     out, summary = result
     stamps, _, _ = truth(bag)
     data = read(out)
-    assert set(data) == {"/owl/points", "/owl/heading", "/diagnostics"}
+    assert set(data) == {
+        "/owl/points", "/owl/heading", "/owl/heading_with_covariance", "/owl/heading_marker",
+        "/diagnostics",
+    }  # fmt: skip
     clouds = data["/owl/points"]
     # one cloud per frame, header = the image header, logged at the image stamp
     assert [header_to_ns(m.header) for _, _, m in clouds] == stamps
@@ -101,6 +104,25 @@ def test_output_readable_with_contract_fields_and_headers(
         v = np.array([m.vector.x, m.vector.y, m.vector.z])
         assert abs(np.linalg.norm(v) - 1) < 1e-9
         assert m.header.frame_id == "camera_optical_frame"
+    # the heading with its uncertainty: sigma^2 (I - h h^T) in the linear block
+    covs = data["/owl/heading_with_covariance"]
+    assert [t for t, _, _ in covs] == [t for t, _, _ in headings]
+    for (_, _, c), (_, _, h), sigma in zip(covs, headings, summary.heading_sigma_rad, strict=True):
+        v = np.array([h.vector.x, h.vector.y, h.vector.z])
+        lin = c.twist.twist.linear
+        assert [lin.x, lin.y, lin.z] == v.tolist() and c.header == h.header
+        cov = np.asarray(c.twist.covariance).reshape(6, 6)
+        np.testing.assert_allclose(cov[:3, :3], sigma**2 * (np.eye(3) - np.outer(v, v)))
+        assert np.trace(cov[:3, :3]) == pytest.approx(2 * sigma**2)
+    # a marker arrow along each heading (Foxglove / RViz show the heading)
+    markers = data["/owl/heading_marker"]
+    assert [t for t, _, _ in markers] == [t for t, _, _ in headings]
+    for (_, _, mk), (_, _, h) in zip(markers, headings, strict=True):
+        tip = mk.points[1]
+        np.testing.assert_allclose(
+            np.array([tip.x, tip.y, tip.z]) / np.linalg.norm([tip.x, tip.y, tip.z]),
+            [h.vector.x, h.vector.y, h.vector.z], atol=1e-12,
+        )  # fmt: skip
     _, records = msg_to_records(data["/diagnostics"][-1][2])
     names = [r.name for r in records]
     assert names == ["owl: input", "owl: processing", "owl: gyro"]
@@ -210,7 +232,7 @@ def test_cli_runs_with_params_file(
         (["{bag}", "-o", "{out}", "--imu-topic", "/camera/image_raw"], 1, "has type"),
         (["{bag}", "-o", "{out}", "-p", "max_features:=-3"], 2, "parameter max_features"),
         (["{bag}", "-o", "{out}", "--camera-to-imu-rotation-xyzw", "0,0,1"], 2, "4 elements"),
-        (["{bag}", "-o", "{bag}"], 1, "exists"),
+        (["{bag}", "-o", "{bag}"], 1, "the output is the input"),
     ],
 )
 def test_cli_bad_input_one_line(
@@ -231,6 +253,43 @@ def test_cli_bad_input_one_line(
     assert process.main([subs.get(a, a) for a in args]) == code
     assert expect in one_error_line(capsys)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("where", ["{bag}", "{bag}/sub", "{parent}"])
+def test_output_that_is_inside_or_holds_the_input_refused_even_with_overwrite(
+    bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], where: str
+) -> None:
+    # a copy as a bare .mcap in a directory of its own, so that "{parent}" holds only
+    # bag files (BagWriter would otherwise refuse it as "not a rosbag2 directory")
+    src = tmp_path / "d" / "in.mcap"
+    src.parent.mkdir()
+    shutil.copy(next(bag.glob("*.mcap")), src)
+    before = src.read_bytes()
+    out = where.format(bag=src, parent=src.parent)
+    assert process.main([str(src), "-o", out, "--overwrite", "-q"]) == 1
+    line = one_error_line(capsys)
+    assert line.startswith("owl_process: error: refusing to write") and str(src) in line
+    assert src.read_bytes() == before and sorted(src.parent.iterdir()) == [src]
+
+
+def test_existing_output_same_message_and_status_in_every_tool(
+    bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    shutil.copytree(bag, out)
+    expect = f"error: output {out} exists (add --overwrite to replace it)"
+    assert process.main([str(bag), "-o", str(out), "-q"]) == 1
+    assert expect in one_error_line(capsys)
+    assert make_bag.main(["still", str(out), "--seconds", "0.2", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0] == f"owl_make_bag: {expect}", err
+    from bags.cli import record
+
+    run = subprocess.run(
+        [sys.executable, "-m", "bags.cli.record", str(out), "/imu/data"],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert run.returncode == 1 and expect in run.stderr and record.PROG in run.stderr
 
 
 def test_truncated_bag_keeps_readable_part(
@@ -311,3 +370,42 @@ def test_calibration_check_warns_within_two_seconds(
     else:
         assert abs(float(values["calibration_offset_s"]) - 0.04) < 0.02
         assert float(values["calibration_angle_deg"]) < 5.0
+
+
+def test_summary_says_why_frames_have_no_points_and_what_to_do_without_imu(
+    bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert process.main([str(bag), "-o", str(tmp_path / "o"), "--imu-topic", "", "-q"]) == 0
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 2, lines
+    assert lines[0].startswith("owl_process: frames without points: ")
+    assert "no gyro samples" in lines[0]
+    n = int(lines[0].split(": ")[2].split()[0])
+    total = int(lines[0].split(" of ")[1].split()[0])
+    assert n == total > 0
+    assert lines[1].endswith("--imu-topic '' -p require_gyro:=false")
+    # a topic missing: the same hint, in the one error line
+    assert process.main([str(bag), "-o", str(tmp_path / "p"), "--imu-topic", "/x"]) == 1
+    assert one_error_line(capsys).endswith("--imu-topic '' -p require_gyro:=false)")
+    # a typo in a parameter name: refused with the close match
+    assert process.main([str(bag), "-o", str(tmp_path / "q"), "-p", "max_feature:=9"]) == 2
+    assert "did you mean max_features?" in one_error_line(capsys)
+
+
+def test_identity_extrinsic_is_said_with_how_to_set_it(result: tuple[Path, Any]) -> None:
+    from dataclasses import replace
+
+    summary = result[1]
+    assert summary.extrinsic_source == "tf_static"  # the rendered bag has /tf_static
+    assert not [n for n in process.summary_notes(summary, ProcessOptions()) if "identity" in n]
+    notes = process.summary_notes(replace(summary, extrinsic_source="default"), ProcessOptions())
+    (note,) = [n for n in notes if "identity" in n]
+    assert "--camera-to-imu-rotation-xyzw X,Y,Z,W" in note and "TF" in note
+
+
+def test_no_time_estimate_from_the_first_messages() -> None:
+    # the "~81 s left" of a 1.4 s run: 0.3 s for the first 0.4 % (imports, engine start)
+    assert process.eta_text(0.3, 0.004) == ""
+    assert process.eta_text(0.9, 0.5) == ""
+    assert process.eta_text(2.0, 0.5) == ", ~2 s left"
+    assert process.eta_text(5.0, 1.0) == ""

@@ -9,7 +9,7 @@ unchanged. The camera-to-IMU rotation is printed on stdout as the node parameter
 A malformed folder (missing file, wrong column count, unreadable image, stamps out of
 order) gets one line naming the file and the problem, exit status 1, and no bag: the bag
 is built in a hidden directory beside OUT_BAG and renamed at the end. The output may not
-be the input folder or inside it.
+be the input folder, inside it or contain it (bags.io.check_output, shared by every tool).
 
 Run ``python -m bags.cli.importers.cli --help`` (console script ``owl_import``).
 """
@@ -33,7 +33,8 @@ from bags.cli.importers.common import (
     write_dataset,
 )
 from bags.cli.importers.kitti import is_kitti, read_kitti
-from bags.errors import BagError
+from bags.errors import BagError, OutputOverlapError
+from bags.io import check_output
 from owl_core.errors import OwlError
 
 
@@ -80,22 +81,15 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _inside(child: Path, parent: Path) -> bool:
-    try:
-        child.relative_to(parent)
-    except ValueError:
-        return False
-    return True
-
-
 def check_paths(dataset: Path, out: Path) -> None:
-    """DatasetError when the input is missing or the output is the input or inside it."""
+    """DatasetError when the input is missing or the output is the input, inside it or
+    contains it (the check every writing tool shares: bags.io.check_output)."""
     if not dataset.is_dir():
         raise DatasetError(f"{dataset}: dataset folder does not exist")
-    src = dataset.resolve()
-    dst = out.resolve()
-    if dst == src or _inside(dst, src):
-        raise DatasetError(f"output {out} is the dataset folder or inside it: refusing to write")
+    try:
+        check_output(out, [dataset], overwrite=True)
+    except OutputOverlapError as err:
+        raise DatasetError(str(err)) from None
 
 
 def read_dataset(args: argparse.Namespace) -> Dataset:

@@ -174,10 +174,10 @@ def test_output_inside_or_equal_to_the_input_is_refused(
     root = tmp_path / "asl"
     shutil.copytree(small_asl, root)
     before = sorted(str(p) for p in root.rglob("*"))
-    for out in (root, root / "mav0" / "bag", root / "bag"):
-        assert main([str(root), str(out)]) == 1
+    for out, how in ((root, "is"), (root / "mav0" / "bag", "is inside"), (tmp_path, "contains")):
+        assert main([str(root), str(out), "--overwrite"]) == 1
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and "inside it" in err[0]
+        assert len(err) == 1 and f"refusing to write {out}: the output {how} the input" in err[0]
     assert sorted(str(p) for p in root.rglob("*")) == before
 
 
