@@ -58,9 +58,15 @@ def outputs(bag: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, A
 
 def test_sparse_outputs_unchanged_and_dense_topics_written(outputs: tuple[Any, Any]) -> None:
     on, off = outputs
-    assert set(off) == {"/owl/points", "/owl/heading", "/diagnostics"}
+    assert set(off) == {
+        "/owl/points",
+        "/owl/heading",
+        "/owl/heading_with_covariance",
+        "/owl/heading_marker",
+        "/diagnostics",
+    }
     assert set(on) == set(off) | {"/" + t for t in TOPICS}
-    for topic in ("/owl/points", "/owl/heading"):
+    for topic in ("/owl/points", "/owl/heading", "/owl/heading_with_covariance"):
         assert [d for _, d, _ in on[topic]] == [d for _, d, _ in off[topic]]
     n_images = len(on["/owl/points"])
     # the first frame has no previous image: every later frame has every dense output
