@@ -51,9 +51,9 @@ from msg_adapters.camera_info import camera_info_to_model
 from msg_adapters.diagnostics import Level, StatusRecord
 from msg_adapters.heading import heading_to_msg
 from msg_adapters.image import compressed_to_frame, image_to_frame
-from msg_adapters.imu import imus_to_gyro
+from msg_adapters.imu import gyro_bias_to_msg, imus_to_gyro
 from msg_adapters.pointcloud import frame_result_to_cloud
-from msg_adapters.stamps import header_to_ns
+from msg_adapters.stamps import header_to_ns, make_header
 from owl_core.calib_check import CalibrationMonitor, MonitorVerdict
 from owl_core.camera import CameraModel
 from owl_core.engine import OwlEngine
@@ -86,6 +86,9 @@ class Output:
         header: the input image's std_msgs/Header.
         speed: m/s used to scale x y z to metres, or None (cloud in seconds).
         arrival_ns: when the image arrived, on the caller's clock, ns.
+        gyro_bias: geometry_msgs/Vector3Stamped for owl/gyro_bias: the engine's bias
+            estimate after this frame, rad/s, IMU frame (stamp = the image's), or None
+            when it is not finite.
     """
 
     result: FrameResult
@@ -95,6 +98,7 @@ class Output:
     header: Any
     speed: float | None
     arrival_ns: int
+    gyro_bias: Any = None
 
 
 @dataclass
@@ -210,6 +214,7 @@ class Pipeline:
         self._ring: collections.deque[tuple[int, tuple[float, float, float]]] = collections.deque()
         self._newest_imu_ns: int | None = None
         self._imu_arrival_ns: int | None = None
+        self._imu_frame_id = ""  # of the newest IMU message: the frame of owl/gyro_bias
         self._last_stamp: int | None = None
         self._speeds: collections.deque[tuple[int, float]] = collections.deque(maxlen=SPEED_KEEP)
         #: totals since start, by key (see diagnostics()).
@@ -350,6 +355,7 @@ class Pipeline:
         if not msgs:
             return
         self._imu_arrival_ns = arrival_ns
+        self._imu_frame_id = str(msgs[-1].header.frame_id)
         try:
             samples = imus_to_gyro(msgs)
         except ValueError as err:
@@ -641,7 +647,10 @@ class Pipeline:
                 self._count("frames_metric")
         else:
             self._last_empty_reason = "; ".join(result.reasons) or "no points"
-        return Output(result, cloud, heading, frame.image, header, speed, item.arrival_ns)
+        bias = None
+        if np.isfinite(result.gyro_bias).all():
+            bias = gyro_bias_to_msg(result.gyro_bias, make_header(stamp, self._imu_frame_id))
+        return Output(result, cloud, heading, frame.image, header, speed, item.arrival_ns, bias)
 
     def record_latency(self, latency_s: float, stamp_latency_s: float | None = None) -> None:
         """Record one frame's arrival -> publication latency (and image stamp ->
@@ -862,8 +871,10 @@ def draw_debug(
     h, w = grey.shape
     n = result.num_points
     if n:
-        ros = np.clip(np.asarray(result.range_over_speed, dtype=np.float64), 0.5, 20.0)
-        level = np.log(ros / 0.5) / math.log(40.0)  # 0 near .. 1 far
+        range_over_speed = np.clip(
+            np.asarray(result.range_over_speed, dtype=np.float64), 0.5, 20.0
+        )
+        level = np.log(range_over_speed / 0.5) / math.log(40.0)  # 0 near .. 1 far
         lut = cv2.applyColorMap(
             np.round(255 * (1.0 - level)).astype(np.uint8).reshape(-1, 1), cv2.COLORMAP_JET
         ).reshape(-1, 3)

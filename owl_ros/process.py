@@ -6,8 +6,9 @@ topics (and optionally a speed topic) in log-time order, feeds them to the same
 (so the result is deterministic: the same bag and options give the same bytes), and
 writes an MCAP rosbag2 with
 
-- ``/owl/points`` (sensor_msgs/PointCloud2) and ``/owl/heading`` (Vector3Stamped), logged
-  at the image stamp, headers = the image's header;
+- ``/owl/points`` (sensor_msgs/PointCloud2), ``/owl/heading`` and ``/owl/gyro_bias``
+  (Vector3Stamped), logged at the image stamp, headers = the image's header (the bias's
+  frame is the IMU's); the table is :mod:`owl_ros.topics`;
 - ``/diagnostics`` (DiagnosticArray) every ``diagnostics_period_s`` of bag time and at the
   end (these hold measured processing times, so only they differ between runs);
 - with ``--copy-inputs``, every input topic of the bag as recorded (one file for Foxglove).
@@ -42,7 +43,7 @@ import numpy.typing as npt
 
 from bags.cli import OneLineErrorParser
 from bags.errors import BagError, CorruptBagError
-from bags.io import BagReader, BagWriter, RawMessage, typestore
+from bags.io import BagReader, BagWriter, RawMessage, serialize
 from msg_adapters.diagnostics import records_to_msg
 from msg_adapters.msgtypes import message_class
 from msg_adapters.stamps import header_to_ns
@@ -57,34 +58,13 @@ from owl_ros.params import (
     to_values,
 )
 from owl_ros.pipeline import Output, Pipeline
+from owl_ros.topics import DIAGNOSTICS, GYRO_BIAS, HEADING, POINTS, RESULT_TOPICS
 
 PROG = "owl_process"
 
-POINTS_TOPIC = "/owl/points"
-HEADING_TOPIC = "/owl/heading"
-DIAGNOSTICS_TOPIC = "/diagnostics"
 TF_STATIC = "/tf_static"
-
-CLOUD = "sensor_msgs/msg/PointCloud2"
-VECTOR = "geometry_msgs/msg/Vector3Stamped"
-DIAG = "diagnostic_msgs/msg/DiagnosticArray"
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 SPEED_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/TwistStamped")
-
-
-def canonical_cdr(msg: Any, msgtype: str) -> bytes:
-    """CDR bytes of an rclpy message with zeroed alignment padding.
-
-    ``rclpy.serialization.serialize_message`` leaves the CDR padding bytes uninitialised,
-    so identical messages could serialise differently; a round trip through the rosbags
-    typestore (which writes zero padding) makes the bytes a function of the content only.
-    """
-    from rclpy.serialization import serialize_message
-
-    store = typestore()
-    return bytes(
-        store.serialize_cdr(store.deserialize_cdr(serialize_message(msg), msgtype), msgtype)
-    )
 
 
 class ProcessError(Exception):
@@ -297,13 +277,12 @@ def process_bag(
         damage: str | None = None
 
         with BagWriter(out, overwrite=opts.overwrite) as writer:
-            writer.add_topic(POINTS_TOPIC, CLOUD, "reliable")
-            writer.add_topic(HEADING_TOPIC, VECTOR, "reliable")
-            writer.add_topic(DIAGNOSTICS_TOPIC, DIAG, "reliable")
+            for result_topic in RESULT_TOPICS:
+                writer.add_topic(result_topic.bag, result_topic.msgtype, result_topic.qos)
             for topic in copy:
-                if topic not in (POINTS_TOPIC, HEADING_TOPIC, DIAGNOSTICS_TOPIC):
+                if topic not in {t.bag for t in RESULT_TOPICS}:
                     writer.add_topic(topic, infos[topic].msgtype, infos[topic].qos_kind)
-            dense = DenseWriter(node_opts, writer, canonical_cdr) if node_opts.dense else None
+            dense = DenseWriter(node_opts, writer, serialize) if node_opts.dense else None
             writer.set_custom_data(
                 "owl_process", repr(sorted((k, v) for k, v in to_values(node_opts).items()))
             )
@@ -316,14 +295,14 @@ def process_bag(
                     points += o.result.num_points
                     if dense is not None:
                         dense.write(o, pipeline.engine, pipeline.camera)
-                    writer.write_raw(POINTS_TOPIC, max(stamp, 0), canonical_cdr(o.cloud, CLOUD))
+                    writer.write(POINTS.bag, max(stamp, 0), o.cloud)
                     if o.heading is not None and o.result.heading is not None:
-                        writer.write_raw(
-                            HEADING_TOPIC, max(stamp, 0), canonical_cdr(o.heading, VECTOR)
-                        )
+                        writer.write(HEADING.bag, max(stamp, 0), o.heading)
                         stamps.append(stamp)
                         headings.append(np.asarray(o.result.heading, dtype=np.float64))
                         sigmas.append(float(o.result.heading_sigma_rad))
+                    if o.gyro_bias is not None:
+                        writer.write(GYRO_BIAS.bag, max(stamp, 0), o.gyro_bias)
                     if not o.result.num_points:
                         for reason in o.result.reasons or ("no points",):
                             reasons[reason.split(" (")[0].split(":")[0]] += 1
@@ -331,7 +310,7 @@ def process_bag(
             def diagnostics(now_ns: int) -> None:
                 extra = [dense.stage.status()] if dense is not None else []
                 msg = records_to_msg(pipeline.diagnostics(now_ns) + extra, now_ns)
-                writer.write_raw(DIAGNOSTICS_TOPIC, max(now_ns, 0), canonical_cdr(msg, DIAG))
+                writer.write(DIAGNOSTICS.bag, max(now_ns, 0), msg)
 
             def handle(raw: RawMessage) -> None:
                 nonlocal imu_frame, rotation, decided, extrinsic_source, next_diag

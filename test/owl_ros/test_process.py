@@ -75,7 +75,7 @@ def test_output_readable_with_contract_fields_and_headers(
     out, summary = result
     stamps, _, _ = truth(bag)
     data = read(out)
-    assert set(data) == {"/owl/points", "/owl/heading", "/diagnostics"}
+    assert set(data) == {"/owl/points", "/owl/heading", "/owl/gyro_bias", "/diagnostics"}
     clouds = data["/owl/points"]
     # one cloud per frame, header = the image header, logged at the image stamp
     assert [header_to_ns(m.header) for _, _, m in clouds] == stamps
@@ -101,9 +101,19 @@ def test_output_readable_with_contract_fields_and_headers(
         v = np.array([m.vector.x, m.vector.y, m.vector.z])
         assert abs(np.linalg.norm(v) - 1) < 1e-9
         assert m.header.frame_id == "camera_optical_frame"
+    # owl/gyro_bias: one per processed frame, image stamp, IMU frame; the last one is the
+    # estimate the final diagnostics report
+    biases = data["/owl/gyro_bias"]
+    assert [header_to_ns(m.header) for _, _, m in biases] == stamps
+    assert {m.header.frame_id for _, _, m in biases} == {"imu_link"}
     _, records = msg_to_records(data["/diagnostics"][-1][2])
     names = [r.name for r in records]
     assert names == ["owl: input", "owl: processing", "owl: gyro"]
+    gyro = records[2].value_map()
+    last = biases[-1][2].vector
+    assert [last.x, last.y, last.z] == pytest.approx(
+        [float(gyro[f"bias_{a}_rad_s"]) for a in "xyz"], rel=1e-5, abs=1e-9
+    )
     proc = records[1].value_map()
     assert proc["frames_processed_total"] == str(len(stamps))
     assert summary.extrinsic_source == "tf_static"
