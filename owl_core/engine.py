@@ -620,7 +620,7 @@ class OwlEngine:
         prev = self._last_stamp
         predict = None
         if prev is not None and self._gyro.covers(prev, stamp):
-            rot = self._gyro.relative_rotation(prev, stamp, bias)
+            r_rel = self._gyro.relative_rotation(prev, stamp, bias)
             cam = self.camera
 
             cache = self._bearing_cache
@@ -634,7 +634,7 @@ class OwlEngine:
                     e_prev = cache[3][:, 0]  # the previous frame converted these pixels
                 else:
                     e_prev = cam.pixel_to_bearing(px)
-                return cam.bearing_to_pixel(e_prev @ rot.T)
+                return cam.bearing_to_pixel(e_prev @ r_rel.T)
 
         t0 = self.clock()
         tracks = self._tracker.track(img, stamp, predict)

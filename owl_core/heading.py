@@ -439,9 +439,13 @@ class GyroBiasFilter:
         random_walk: float = 1e-4,
         initial_bias: npt.ArrayLike = (0.0, 0.0, 0.0),
     ) -> None:
-        rot = np.eye(3) if camera_to_imu is None else np.asarray(camera_to_imu, dtype=np.float64)
-        if rot.shape != (3, 3):
-            raise InvalidInputError(f"camera_to_imu must have shape (3, 3), got {rot.shape}")
+        cam_to_imu = (
+            np.eye(3) if camera_to_imu is None else np.asarray(camera_to_imu, dtype=np.float64)
+        )
+        if cam_to_imu.shape != (3, 3):
+            raise InvalidInputError(
+                f"camera_to_imu must have shape (3, 3), got {cam_to_imu.shape}"
+            )
         if not initial_sigma > 0 or not random_walk >= 0:
             raise InvalidInputError(
                 f"initial_sigma must be > 0 and random_walk >= 0, got {initial_sigma}, "
@@ -450,7 +454,7 @@ class GyroBiasFilter:
         b0 = np.asarray(initial_bias, dtype=np.float64)
         if b0.shape != (3,):
             raise InvalidInputError(f"initial_bias must have shape (3,), got {b0.shape}")
-        self._rot = rot
+        self._cam_to_imu = cam_to_imu
         self._initial_sigma = float(initial_sigma)
         self._random_walk = float(random_walk)
         self._initial_bias = b0.copy()
@@ -469,12 +473,12 @@ class GyroBiasFilter:
     @property
     def bias_camera(self) -> FloatArray:
         """(3,) bias in the camera frame, rad/s."""
-        return np.asarray(self._rot.T @ self.bias, dtype=np.float64)
+        return np.asarray(self._cam_to_imu.T @ self.bias, dtype=np.float64)
 
     @property
     def cov_camera(self) -> FloatArray:
         """(3, 3) bias covariance in the camera frame, (rad/s)^2."""
-        return np.asarray(self._rot.T @ self.cov @ self._rot, dtype=np.float64)
+        return np.asarray(self._cam_to_imu.T @ self.cov @ self._cam_to_imu, dtype=np.float64)
 
     def predict(self, dt_s: float) -> None:
         """Grow the uncertainty by the random walk over ``dt_s`` seconds (>= 0)."""
@@ -535,8 +539,8 @@ class GyroBiasFilter:
         new_cov_cam = np.linalg.inv(info_state + info_meas)
         # the state's own mean in delta-space is 0 (the derotation used self.bias)
         delta = new_cov_cam @ y
-        self.bias = self.bias - self._rot @ delta
-        self.cov = self._rot @ new_cov_cam @ self._rot.T
+        self.bias = self.bias - self._cam_to_imu @ delta
+        self.cov = self._cam_to_imu @ new_cov_cam @ self._cam_to_imu.T
         self.cov = 0.5 * (self.cov + self.cov.T)
         self.updates += 1
         return True

@@ -164,17 +164,17 @@ def owl_quantities(
     safe2 = np.where(valid, norm2, 1.0)
     norm = np.sqrt(safe2)
     rot = np.concatenate([lo[:, None], -w], axis=1) / safe2[:, None]
-    ros = 1.0 / norm
-    points = e * ros[:, None]
+    range_over_speed = 1.0 / norm
+    points = e * range_over_speed[:, None]
     heading = (lo[:, None] * e + cross(w, e)) / norm[:, None]
     alpha = np.arctan2(np.linalg.norm(w, axis=1), lo)
     nan = ~valid
     rot[nan] = np.nan
-    ros[nan] = np.nan
+    range_over_speed[nan] = np.nan
     points[nan] = np.nan
     heading[nan] = np.nan
     alpha[nan] = np.nan
-    return OwlQuantities(tor, rot, ros, points, heading, alpha, valid)
+    return OwlQuantities(tor, rot, range_over_speed, points, heading, alpha, valid)
 
 
 def tangent_basis(bearings: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
