@@ -150,7 +150,7 @@ ROSDEP_KEYS = {
     "matplotlib": "python3-matplotlib",
 }
 #: pip-only (no rosdep key): these must be pinned in requirements/python.txt instead.
-PIP_ONLY = {"rosbags": "rosbags", "mcap": "mcap"}
+PIP_ONLY = {"rosbags": "rosbags", "mcap": "mcap", "ray": "ray"}
 
 
 def test_every_imported_third_party_package_is_declared() -> None:

@@ -16,7 +16,8 @@ baseline in ``owl_bench``, see :func:`score_frame` and :func:`summarize`):
 - **moving points**: precision and recall of the ``flags`` MOVING bit (4) against the
   moving mask (``/ground_truth/moving_mask``) sampled at the point.
 - **gyro-bias error** (rad/s, IMU frame): ``|b_est - b_true|``; the estimate comes from the
-  result's ``/diagnostics`` (``owl: gyro`` keys ``bias_x_rad_s`` ...), the truth from the
+  result's ``/owl/gyro_bias`` (geometry_msgs/Vector3Stamped, the estimate after each frame,
+  matched by image stamp), the truth from the
   truth bag's ``/ground_truth/gyro_bias`` (geometry_msgs/Vector3Stamped, IMU frame, at image
   stamps: ``owl_import`` writes it from EuRoC's ``b_w``), else from its ``owl_make_bag``
   options (``--gyro-bias``; metadata ``custom_data``). A bias random walk
@@ -28,9 +29,9 @@ and points only: r/|t| is reported as "not scored: no range ground truth" (summa
 ``range_scored`` false; the image size then comes from ``/camera/camera_info``).
 
 Result topics: ``/owl/points`` (sensor_msgs/PointCloud2 with at least ``u v
-range_over_speed flags``) and ``/owl/heading`` (geometry_msgs/Vector3Stamped), matched to
-the truth by header stamp (= image stamp). Text for people; ``--json`` prints one object
-``{"summary": {...}, "frames": [...]}``.
+range_over_speed flags``), ``/owl/heading`` and ``/owl/gyro_bias``
+(geometry_msgs/Vector3Stamped), matched to the truth by header stamp (= image stamp).
+Text for people; ``--json`` prints one object ``{"summary": {...}, "frames": [...]}``.
 """
 
 from __future__ import annotations
