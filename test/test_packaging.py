@@ -115,6 +115,7 @@ def test_product_imports_no_tool_and_no_module_changes_the_environment() -> None
         """
         import importlib, os, pkgutil, sys
         import cv2  # OpenCV's own import sets LD_LIBRARY_PATH: not ours to check
+        import threadpoolctl  # its own import sets KMP_DUPLICATE_LIB_OK: not ours either
         before = dict(os.environ)
         import bags, msg_adapters, owl_core, owl_ros
         product = ["owl_ros.node", "owl_ros.pipeline", "owl_ros.params", "owl_ros.process",
@@ -150,7 +151,7 @@ ROSDEP_KEYS = {
     "matplotlib": "python3-matplotlib",
 }
 #: pip-only (no rosdep key): these must be pinned in requirements/python.txt instead.
-PIP_ONLY = {"rosbags": "rosbags", "mcap": "mcap", "ray": "ray"}
+PIP_ONLY = {"rosbags": "rosbags", "mcap": "mcap", "ray": "ray", "threadpoolctl": "threadpoolctl"}
 
 
 def test_every_imported_third_party_package_is_declared() -> None:
