@@ -58,7 +58,7 @@ def outputs(bag: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, A
 
 def test_sparse_outputs_unchanged_and_dense_topics_written(outputs: tuple[Any, Any]) -> None:
     on, off = outputs
-    assert set(off) == {"/owl/points", "/owl/heading", "/diagnostics"}
+    assert set(off) == {"/owl/points", "/owl/heading", "/owl/gyro_bias", "/diagnostics"}
     assert set(on) == set(off) | {"/" + t for t in TOPICS}
     for topic in ("/owl/points", "/owl/heading"):
         assert [d for _, d, _ in on[topic]] == [d for _, d, _ in off[topic]]
