@@ -16,7 +16,7 @@ built in a hidden sibling directory and renamed into place on success)::
 
     with BagWriter("out_bag", overwrite=True) as bag:
         bag.add_topic("/tf_static", "tf2_msgs/msg/TFMessage", qos="latched")
-        bag.write("/tf_static", stamp_ns, msg)           # rosbags message object
+        bag.write("/tf_static", stamp_ns, msg)           # rosbags or rclpy message
         bag.write_raw("/camera/image_raw", stamp_ns, cdr_bytes)
 
 QoS names for ``add_topic`` (recorded in ``offered_qos_profiles``, which ``ros2 bag play``
@@ -115,6 +115,25 @@ QOS_PROFILES: dict[str, Qos] = {
 def typestore() -> Typestore:
     """The shared rosbags typestore with every ROS 2 Jazzy message type (do not mutate)."""
     return get_typestore(Stores.ROS2_JAZZY)
+
+
+def serialize(msg: Any, msgtype: str) -> bytes:
+    """CDR bytes of ``msg`` (a rosbags or an rclpy message of type ``msgtype``): the one
+    serialisation path of the project's bag writers.
+
+    The bytes are a function of the content only: rosbags writes zero alignment padding;
+    ``rclpy.serialization.serialize_message`` leaves padding bytes uninitialised, so an
+    rclpy message is serialised by rclpy and written again through the typestore (which
+    is what makes owl_process's output bytes identical between runs).
+    """
+    store = typestore()
+    if hasattr(msg, "__msgtype__"):  # a rosbags message object
+        return bytes(store.serialize_cdr(msg, msgtype))
+    from rclpy.serialization import serialize_message
+
+    return bytes(
+        store.serialize_cdr(store.deserialize_cdr(serialize_message(msg), msgtype), msgtype)
+    )
 
 
 @dataclass(frozen=True)
@@ -707,10 +726,10 @@ class BagWriter:
         self.count += 1
 
     def write(self, topic: str, stamp_ns: int, msg: object) -> None:
-        """Serialise the rosbags message ``msg`` with the typestore and store it."""
+        """Serialise ``msg`` (a rosbags or an rclpy message) with :func:`serialize` and
+        store it."""
         self._conn(topic)
-        data = typestore().serialize_cdr(msg, self._types[topic])
-        self.write_raw(topic, stamp_ns, data)
+        self.write_raw(topic, stamp_ns, serialize(msg, self._types[topic]))
 
     def close(self) -> None:
         """Finish the MCAP and metadata.yaml and move the bag to ``path``."""

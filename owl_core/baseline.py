@@ -267,19 +267,19 @@ def essential_two_view(
     inl = mask.reshape(-1) > 0
     # recoverPose's own mask also drops points farther than 50 baselines (its distance
     # threshold): those are valid correspondences, so the RANSAC mask defines the inliers.
-    n_front, rot_cv, t_cv, _ = cv2.recoverPose(
+    n_front, r_cv, t_cv, _ = cv2.recoverPose(
         emat, x0, x1, focal=1.0, pp=(0.0, 0.0), mask=mask.copy()
     )
     if np.count_nonzero(inl) < opts.min_points or int(n_front) == 0:
         return _empty(n, f"recoverPose kept {int(n_front)} of {int(np.count_nonzero(inl))}")
     t: FloatArray = np.asarray(t_cv, dtype=np.float64).reshape(3)
     heading = -t / np.linalg.norm(t)
-    rot: FloatArray = np.asarray(rot_cv, dtype=np.float64)
+    r_10: FloatArray = np.asarray(r_cv, dtype=np.float64)
     inliers = np.zeros(n, dtype=bool)
     inliers[idx[inl]] = True
-    ros = triangulate_current(a, b, rot, heading, interval_s, opts.min_parallax_deg)
-    ros[~inliers] = np.nan
-    return TwoViewEstimate(heading, rot, ros, inliers)
+    range_over_speed = triangulate_current(a, b, r_10, heading, interval_s, opts.min_parallax_deg)
+    range_over_speed[~inliers] = np.nan
+    return TwoViewEstimate(heading, r_10, range_over_speed, inliers)
 
 
 def _unit_rows(v: FloatArray) -> FloatArray:
@@ -314,15 +314,15 @@ def gyro_two_view(
     """
     opts = options or BaselineOptions()
     a, b = _check_pairs(e0, e1, interval_s)
-    rot = np.asarray(rotation, dtype=np.float64)
-    if rot.shape != (3, 3) or not np.isfinite(rot).all():
-        raise InvalidInputError(f"rotation must be a finite (3, 3) matrix, got {rot.shape}")
+    r_10 = np.asarray(rotation, dtype=np.float64)
+    if r_10.shape != (3, 3) or not np.isfinite(r_10).all():
+        raise InvalidInputError(f"rotation must be a finite (3, 3) matrix, got {r_10.shape}")
     n = a.shape[0]
     usable = np.isfinite(a).all(1) & np.isfinite(b).all(1)
     if np.count_nonzero(usable) < opts.min_points:
         return _empty(n, f"{int(np.count_nonzero(usable))} correspondences < {opts.min_points}")
     idx = np.flatnonzero(usable)
-    a_rot = a[idx] @ rot.T
+    a_rot = a[idx] @ r_10.T
     normals = np.cross(b[idx], a_rot)  # (M, 3), |n| ~ derotated parallax angle
     m = idx.size
     thr = opts.threshold_px / focal_px
@@ -336,7 +336,7 @@ def gyro_two_view(
     best = int(np.argmax(counts))
     inl = scores[:, best]
     if np.count_nonzero(inl) < opts.min_points:
-        return _empty(n, f"RANSAC kept {int(np.count_nonzero(inl))} < {opts.min_points}", rot)
+        return _empty(n, f"RANSAC kept {int(np.count_nonzero(inl))} < {opts.min_points}", r_10)
     h = cand[best]
     for _ in range(3):  # refine on inliers, re-select inliers
         _, _, vt = np.linalg.svd(normals[inl], full_matrices=False)
@@ -350,9 +350,9 @@ def gyro_two_view(
         h = -h
     inliers = np.zeros(n, dtype=bool)
     inliers[idx[inl]] = True
-    ros = triangulate_current(a, b, rot, h, interval_s, opts.min_parallax_deg)
-    ros[~inliers] = np.nan
-    return TwoViewEstimate(h / np.linalg.norm(h), rot, ros, inliers)
+    range_over_speed = triangulate_current(a, b, r_10, h, interval_s, opts.min_parallax_deg)
+    range_over_speed[~inliers] = np.nan
+    return TwoViewEstimate(h / np.linalg.norm(h), r_10, range_over_speed, inliers)
 
 
 @dataclass(frozen=True)
@@ -444,10 +444,10 @@ class TwoViewBaseline:
         e1 = self.camera.pixel_to_bearing(hist[both, 0])
         e0 = self.camera.pixel_to_bearing(hist[both, gap])
         if opts.method == "gyro":
-            rot = self._rotation(int(stamps[gap]), stamp) if self._rotation else None
-            if rot is None:
+            r_10 = self._rotation(int(stamps[gap]), stamp) if self._rotation else None
+            if r_10 is None:
                 return nothing("the gyro does not cover the interval", interval)
-            est = gyro_two_view(e0, e1, rot, interval, self._focal, opts)
+            est = gyro_two_view(e0, e1, r_10, interval, self._focal, opts)
         else:
             est = essential_two_view(e0, e1, interval, self._focal, opts)
         flags = np.where(est.inliers, 0, int(PointFlag.MOVING)).astype(np.uint8)

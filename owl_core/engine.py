@@ -324,6 +324,136 @@ def fit_tracks(bearings: FloatArray, tau_s: FloatArray, mask: BoolArray, order: 
     return TrackFit(out_b, rate, tau_ref, gain, valid)
 
 
+@dataclass
+class _MotionState:
+    """What the engine carries from one frame to the next, besides the tracker, the gyro
+    buffer and the bias filter; one :meth:`OwlEngine.reset` replaces it whole.
+
+    Attributes:
+        last_stamp: the previous frame's stamp, ns (None before the first).
+        last_heading: (3,) the previous heading at its fit reference time (RANSAC seed).
+        heading_history: recent fused headings: (stamp_ns, heading at its fit reference
+            time, that time relative to stamp_ns in s); they bring the heading to now.
+        speed_state: (stamp_ns, ids (N,), points (N, 3), headings (N, 3)) of the previous
+            frame, for the frame-to-frame speed rate.
+        speed_rate: d ln|t|/dt, 1/s.
+        bearing_cache: (stamp_ns, ids (N,), pixel history (N, W, 2), its unrotated
+            bearings (N, W, 3)) of the previous frame: undistortion (Newton iterations for
+            real lenses) then runs on each new position only, not on the whole history.
+    """
+
+    last_stamp: int | None = None
+    last_heading: FloatArray | None = None
+    heading_history: list[tuple[int, FloatArray, float]] = field(default_factory=list)
+    speed_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
+    speed_rate: float = 0.0
+    bearing_cache: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
+
+
+@dataclass(frozen=True)
+class StageSkip:
+    """A stage of :meth:`OwlEngine.process` ended the frame without points.
+
+    Attributes:
+        reason: why (becomes the last of ``FrameResult.reasons``).
+        dropped: (counter, count) pairs for ``FrameResult.dropped``.
+        timings: (stage, seconds) pairs of the stage that stopped.
+        notes: reasons the stage noted before it stopped.
+    """
+
+    reason: str
+    dropped: tuple[tuple[str, int], ...] = ()
+    timings: tuple[tuple[str, float], ...] = ()
+    notes: tuple[str, ...] = ()
+
+
+@dataclass
+class _FrameLog:
+    """What one frame's stages report: reasons, dropped counts and stage times (s)."""
+
+    reasons: list[str] = field(default_factory=list)
+    dropped: dict[str, int] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def add(
+        self,
+        timings: tuple[tuple[str, float], ...] = (),
+        dropped: tuple[tuple[str, int], ...] = (),
+        notes: tuple[str, ...] = (),
+    ) -> None:
+        self.timings.update(timings)
+        self.dropped.update(dropped)
+        self.reasons.extend(notes)
+
+
+@dataclass(frozen=True)
+class _Tracked:
+    """Stage 1 (track): the tracker's output, the previous frame's stamp (ns, None for
+    the first) and the gyro bias (3,), rad/s, the prediction used."""
+
+    tracks: Tracks
+    prev_ns: int | None
+    bias: FloatArray
+    timings: tuple[tuple[str, float], ...]
+    dropped: tuple[tuple[str, int], ...]
+
+
+@dataclass(frozen=True)
+class _Integrated:
+    """Stage 2 (integrate), for the N tracks with a fit: (W,) fit-window stamps, ns, and
+    (W, 3, 3) rotations to now; unit bearings now ``e_now`` and at the reference time
+    ``e`` (N, 3), derotated bearing rates ``f`` (N, 3), 1/s, with 1-sigma ``f_sigma``
+    (N,); reference times ``tau_ref`` (N,), s (<= 0); pixels (N, 2); ids (N,)."""
+
+    stamps: npt.NDArray[np.int64]
+    rotations: FloatArray
+    with_gyro: bool
+    flags_all: np.uint8
+    window_s: float
+    e_now: FloatArray
+    e: FloatArray
+    f: FloatArray
+    f_sigma: FloatArray
+    tau_ref: FloatArray
+    pixels: FloatArray
+    ids: npt.NDArray[np.uint32]
+    notes: tuple[str, ...]
+    dropped: tuple[tuple[str, int], ...]
+    timings: tuple[tuple[str, float], ...]
+
+
+@dataclass(frozen=True)
+class _Headed:
+    """Stage 3 (heading): the estimate, the unit heading at the fits' reference time and
+    now (3,), its 1-sigma (rad), and the rates ``f`` (N, 3) with the leftover rotation
+    removed."""
+
+    est: hd.MotionEstimate
+    heading_ref: FloatArray
+    heading: FloatArray
+    heading_sigma: float
+    f: FloatArray
+    timings: tuple[tuple[str, float], ...]
+
+
+@dataclass(frozen=True)
+class _Loomed:
+    """Stage 4 (looming), per feature (N,): L now (1/s), omega now (N, 3), RoT (N, 4), r/|t|
+    (s), points (N, 3), quality, flags, and which to keep."""
+
+    looming: FloatArray
+    omega: FloatArray
+    rot: FloatArray
+    range_over_speed: FloatArray
+    points: FloatArray
+    quality: FloatArray
+    flags: npt.NDArray[np.uint8]
+    keep: BoolArray
+    notes: tuple[str, ...]
+    dropped: tuple[tuple[str, int], ...]
+    timings: tuple[tuple[str, float], ...]
+
+
 class OwlEngine:
     """The OWL pipeline for one camera (see the module docstring).
 
@@ -363,19 +493,8 @@ class OwlEngine:
         self._tracker = FeatureTracker(self._tracker_options)
         self._clock: Callable[[], float] = time.perf_counter
         self._rng = np.random.default_rng(opts.seed)
-        self._last_stamp: int | None = None
-        self._last_heading: FloatArray | None = None
-        # recent fused headings: (stamp_ns, heading at its fit reference time, that time
-        # relative to stamp_ns in s); used to bring the heading to the current stamp
-        self._heading_history: list[tuple[int, FloatArray, float]] = []
-        self._speed_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
-        self._speed_rate = 0.0
+        self._state = _MotionState()
         self._last_tracks: Tracks | None = None
-        # (stamp_ns, ids (N,), pixel history (N, W, 2), its unrotated bearings (N, W, 3))
-        # of the previous frame: undistortion (Newton iterations for real lenses) is then
-        # run on each new position only, not on the whole history every frame
-        self._bearing_cache: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None
-        self._bearing_cache = None
         self.frames = 0
 
     @property
@@ -429,32 +548,23 @@ class OwlEngine:
     def covers(self, stamp_ns: int) -> bool:
         """Whether the gyro covers the interval from the previous frame to ``stamp_ns``
         (just ``stamp_ns`` for the first frame)."""
-        start = self._last_stamp if self._last_stamp is not None else int(stamp_ns)
+        start = self._state.last_stamp if self._state.last_stamp is not None else int(stamp_ns)
         return self._gyro.covers(min(start, int(stamp_ns)), int(stamp_ns))
 
-    def reset(self) -> None:
-        """Forget tracks, gyro samples, heading and the bias estimate."""
-        self._tracker.reset()
-        self._last_tracks = None
-        self._bearing_cache = None
-        self._gyro.reset()
-        self._bias.reset()
-        self._last_stamp = None
-        self._last_heading = None
-        self._heading_history = []
-        self._speed_state = None
-        self._speed_rate = 0.0
-        self._rng = np.random.default_rng(self.options.seed)
+    def reset(self, keep_gyro: bool = False) -> None:
+        """Forget tracks, heading and the frame-to-frame state; without ``keep_gyro`` also
+        the gyro samples, the bias estimate and the random state (a fresh engine).
 
-    def _soft_reset(self) -> None:
-        """Forget tracks and heading (keeps gyro samples and the bias estimate)."""
+        ``keep_gyro=True`` is what the engine itself does after a backwards stamp or a too
+        long frame gap: the IMU history and the bias estimate stay valid.
+        """
         self._tracker.reset()
-        self._bearing_cache = None
-        self._last_stamp = None
-        self._last_heading = None
-        self._heading_history = []
-        self._speed_state = None
-        self._speed_rate = 0.0
+        self._state = _MotionState()
+        if not keep_gyro:
+            self._last_tracks = None
+            self._gyro.reset()
+            self._bias.reset()
+            self._rng = np.random.default_rng(self.options.seed)
 
     def _history_bearings(
         self,
@@ -474,7 +584,7 @@ class OwlEngine:
         n, w = hist.shape[:2]
         need = np.ones((n, w), dtype=bool)
         out = np.empty((n, w, 3))
-        cache = self._bearing_cache
+        cache = self._state.bearing_cache
         if cache is not None and w > 1 and stamps.shape[0] > 1 and cache[0] == int(stamps[1]):
             _, c_ids, c_pix, c_bear = cache
             cols = min(w - 1, c_pix.shape[1])
@@ -490,7 +600,7 @@ class OwlEngine:
                 out[same, 1 : 1 + cols] = c_bear[rows[same], :cols]
                 need[same, 1 : 1 + cols] = False
         out[need] = self.camera.pixel_to_bearing(hist[need])
-        self._bearing_cache = (stamp, ids, hist, out)
+        self._state.bearing_cache = (stamp, ids, hist, out)
         return out
 
     def _update_speed_rate(
@@ -507,27 +617,27 @@ class OwlEngine:
         predicts this frame's; the ratio of predicted to measured r/|t| is the speed ratio.
         """
         opts = self.options
-        prev = self._speed_state
-        self._speed_state = (stamp, ids[static], points[static], headings[static])
+        prev = self._state.speed_state
+        self._state.speed_state = (stamp, ids[static], points[static], headings[static])
         if not opts.estimate_speed_change:
             return 0.0
         if prev is None:
-            return self._speed_rate
+            return self._state.speed_rate
         p_stamp, p_ids, p_points, p_headings = prev
         dt = (stamp - p_stamp) * 1e-9
         _, now_idx, prev_idx = np.intersect1d(ids[static], p_ids, return_indices=True)
         if dt <= 0 or now_idx.size < 20:
-            return self._speed_rate
+            return self._state.speed_rate
         predicted = np.linalg.norm(p_points[prev_idx] - p_headings[prev_idx] * dt, axis=1)
         measured = np.linalg.norm(points[static][now_idx], axis=1)
         good = (predicted > 0) & (measured > 0)
         if np.count_nonzero(good) < 20:
-            return self._speed_rate
+            return self._state.speed_rate
         rate = float(np.median(np.log(predicted[good] / measured[good]))) / dt
         rate = float(np.clip(rate, -opts.max_speed_rate, opts.max_speed_rate))
         gain = opts.speed_rate_gain
-        self._speed_rate = (1.0 - gain) * self._speed_rate + gain * rate
-        return self._speed_rate
+        self._state.speed_rate = (1.0 - gain) * self._state.speed_rate + gain * rate
+        return self._state.speed_rate
 
     def _heading_now(
         self,
@@ -549,14 +659,16 @@ class OwlEngine:
         index = {int(s): k for k, s in enumerate(stamps) if s >= 0}
         times = [tau_ref]
         vectors = [heading_ref]
-        for old_stamp, old_heading, old_tau in self._heading_history:
+        for old_stamp, old_heading, old_tau in self._state.heading_history:
             k = index.get(old_stamp)
             if k is None or k == 0:
                 continue
             times.append((old_stamp - stamp) * 1e-9 + old_tau)
             vectors.append(rotations[k] @ old_heading)
-        kept = [item for item in self._heading_history if item[0] in index and item[0] != stamp]
-        self._heading_history = [(stamp, heading_ref, tau_ref), *kept[: opts.fit_frames - 2]]
+        kept = [
+            item for item in self._state.heading_history if item[0] in index and item[0] != stamp
+        ]
+        self._state.heading_history = [(stamp, heading_ref, tau_ref), *kept[: opts.fit_frames - 2]]
         if len(times) < 3:
             return heading_ref, sigma
         t = np.asarray(times)
@@ -577,7 +689,10 @@ class OwlEngine:
     # ------------------------------------------------------------------ process
 
     def process(self, frame: ImageFrame) -> FrameResult:
-        """Run the pipeline on one image (see the module docstring).
+        """Run the pipeline on one image (see the module docstring): a chain of stages,
+        :meth:`_track`, :meth:`_integrate`, :meth:`_estimate_heading`, :meth:`_looming`
+        and :meth:`_compose`; each returns a small frozen record, or a :class:`StageSkip`
+        saying why the frame gives no points.
 
         Args:
             frame: the image (H, W) uint8 matching the camera size, integer-ns stamp.
@@ -589,7 +704,27 @@ class OwlEngine:
             InvalidInputError: wrong image shape or dtype.
         """
         t_start = self.clock()
-        opts = self.options
+        img = self._check_image(frame)
+        stamp = int(frame.stamp_ns)
+        log = _FrameLog()
+        gap_reason = self._check_gap(stamp)
+        if gap_reason is not None:
+            log.reasons.append(gap_reason)
+        tracked = self._track(img, stamp)
+        log.add(tracked.timings, tracked.dropped)
+        integrated = self._integrate(tracked, stamp)
+        if isinstance(integrated, StageSkip):
+            return self._skipped(stamp, integrated, log, t_start)
+        log.add(integrated.timings, integrated.dropped, integrated.notes)
+        headed = self._estimate_heading(integrated, tracked.prev_ns, stamp)
+        if isinstance(headed, StageSkip):
+            return self._skipped(stamp, headed, log, t_start)
+        log.add(headed.timings)
+        loomed = self._looming(integrated, headed, stamp)
+        log.add(loomed.timings, loomed.dropped, loomed.notes)
+        return self._compose(stamp, integrated, headed, loomed, log, t_start)
+
+    def _check_image(self, frame: ImageFrame) -> npt.NDArray[np.uint8]:
         img = np.asarray(frame.image)
         if img.ndim != 2 or img.dtype != np.uint8:
             raise InvalidInputError(
@@ -600,30 +735,40 @@ class OwlEngine:
                 f"image shape {img.shape} does not match the camera "
                 f"({self.camera.height}, {self.camera.width})"
             )
-        stamp = int(frame.stamp_ns)
-        reasons: list[str] = []
-        dropped: dict[str, int] = {}
-        timings: dict[str, float] = {}
-        if self._last_stamp is not None:
-            gap = stamp - self._last_stamp
-            if gap <= 0:
-                reasons.append(
-                    f"time went backwards ({stamp} ns after {self._last_stamp} ns): tracks reset"
-                )
-                self._soft_reset()
-            elif gap > opts.max_frame_gap_s * 1e9:
-                reasons.append(f"frame gap {gap * 1e-9:.3f} s > max_frame_gap_s: tracks reset")
-                self._soft_reset()
+        return img
 
-        # ---------------------------------------------------------------- track
+    def _check_gap(self, stamp: int) -> str | None:
+        """Reset the tracks after a backwards stamp or a too long gap; returns why."""
+        if self._state.last_stamp is None:
+            return None
+        gap = stamp - self._state.last_stamp
+        reason = None
+        if gap <= 0:
+            reason = (
+                f"time went backwards ({stamp} ns after {self._state.last_stamp} ns): tracks reset"
+            )
+        elif gap > self.options.max_frame_gap_s * 1e9:
+            reason = f"frame gap {gap * 1e-9:.3f} s > max_frame_gap_s: tracks reset"
+        if reason is not None:
+            self.reset(keep_gyro=True)
+        return reason
+
+    def _skipped(self, stamp: int, skip: StageSkip, log: _FrameLog, t_start: float) -> FrameResult:
+        log.add(skip.timings, skip.dropped, (*skip.notes, skip.reason))
+        log.timings["total"] = self.clock() - t_start
+        return _empty_result(
+            stamp, None, math.inf, self._bias.bias, log.timings, log.reasons, log.dropped
+        )
+
+    def _track(self, img: npt.NDArray[np.uint8], stamp: int) -> _Tracked:
+        """Stage 1: track features, predicted with the gyro's rotation since the last frame."""
         bias = self._bias.bias
-        prev = self._last_stamp
+        prev = self._state.last_stamp
         predict = None
         if prev is not None and self._gyro.covers(prev, stamp):
-            rot = self._gyro.relative_rotation(prev, stamp, bias)
+            r_rel = self._gyro.relative_rotation(prev, stamp, bias)
             cam = self.camera
-
-            cache = self._bearing_cache
+            cache = self._state.bearing_cache
 
             def predict(px: FloatArray) -> FloatArray:
                 if (
@@ -634,66 +779,72 @@ class OwlEngine:
                     e_prev = cache[3][:, 0]  # the previous frame converted these pixels
                 else:
                     e_prev = cam.pixel_to_bearing(px)
-                return cam.bearing_to_pixel(e_prev @ rot.T)
+                return cam.bearing_to_pixel(e_prev @ r_rel.T)
 
         t0 = self.clock()
         tracks = self._tracker.track(img, stamp, predict)
         self._last_tracks = tracks
-        timings["track"] = self.clock() - t0
-        for key, value in getattr(tracks, "timings", {}).items():
-            timings[key] = float(value)
-        self._last_stamp = stamp
+        timings = [("track", self.clock() - t0)]
+        timings += [(k, float(v)) for k, v in getattr(tracks, "timings", {}).items()]
+        self._state.last_stamp = stamp
         self.frames += 1
-        if tracks.lost_by_reason:
-            for key, value in tracks.lost_by_reason.items():
-                if value:
-                    dropped[f"lost_{key}"] = int(value)
+        lost = tracks.lost_by_reason or {}
+        dropped = tuple((f"lost_{k}", int(v)) for k, v in lost.items() if v)
+        return _Tracked(tracks, prev, bias, tuple(timings), dropped)
 
-        def finish(heading: FloatArray | None = None, sigma: float = math.inf) -> FrameResult:
-            timings["total"] = self.clock() - t_start
-            return _empty_result(stamp, heading, sigma, self._bias.bias, timings, reasons, dropped)
-
-        # ------------------------------------------------------------ integrate
-        t0 = self.clock()
-        stamps = tracks.stamps_ns[: opts.fit_frames]
+    def _gyro_rotations(
+        self, stamps: npt.NDArray[np.int64], stamp: int, bias: FloatArray, have_gyro: bool
+    ) -> tuple[FloatArray, BoolArray, bool, np.uint8, list[str]] | StageSkip:
+        """Rotations from each fit-window column to now, which columns are usable, whether
+        the gyro is used, the flags for all points and notes; or why there are no points."""
+        opts = self.options
         columns = np.flatnonzero(stamps >= 0)
         columns = columns[columns < opts.fit_frames]
-        flags_all = np.uint8(0)
         rotations = np.repeat(np.eye(3)[None], stamps.shape[0], axis=0)
         usable_col = stamps >= 0
-        gyro_prior = opts.no_gyro_rotation_sigma**2 * np.eye(3)
-        have_gyro = len(self._gyro) > 0
-        with_gyro = True
         covered = [k for k in columns[1:] if self._gyro.covers(int(stamps[k]), stamp)]
         usable_col[np.setdiff1d(columns[1:], covered)] = False
         if covered:  # one integration back over the whole fit window
             rotations[covered] = self._gyro.relative_rotations(stamps[covered], stamp, bias)
+        notes: list[str] = []
+        with_gyro = True
+        flags_all = np.uint8(0)
         if columns.size > 1 and not usable_col[columns[1]]:
             # not even the last interval is covered
             if opts.require_gyro:
                 what = (
                     "no gyro samples" if not have_gyro else "IMU does not cover the frame interval"
                 )
-                reasons.append(f"{what} (require_gyro): no points")
-                dropped["no_gyro"] = tracks.num_tracks
-                timings["integrate"] = self.clock() - t0
-                return finish()
+                return StageSkip(f"{what} (require_gyro): no points")
             with_gyro = False
             flags_all = np.uint8(PointFlag.NO_GYRO | (PointFlag.IMU_GAP if have_gyro else 0))
             rotations[:] = np.eye(3)
             usable_col = stamps >= 0
-            reasons.append(
+            notes.append(
                 "processed without gyro derotation: "
                 + ("IMU does not cover the interval" if have_gyro else "no gyro samples")
             )
         usable_col[opts.fit_frames :] = False
         uncovered = int(np.count_nonzero(~usable_col[columns]))
         if with_gyro and uncovered:
-            reasons.append(
+            notes.append(
                 f"IMU does not reach back over {uncovered} of the last {columns.size} frames: "
                 "shorter track fits"
             )
+        return rotations, usable_col, with_gyro, flags_all, notes
 
+    def _integrate(self, tracked: _Tracked, stamp: int) -> _Integrated | StageSkip:
+        """Stage 2: derotate each track's history with the gyro and fit bearing and rate
+        at the track's reference time."""
+        t0 = self.clock()
+        opts = self.options
+        tracks = tracked.tracks
+        stamps = tracks.stamps_ns[: opts.fit_frames]
+        gyro = self._gyro_rotations(stamps, stamp, tracked.bias, len(self._gyro) > 0)
+        if isinstance(gyro, StageSkip):
+            seconds = (("integrate", self.clock() - t0),)
+            return StageSkip(gyro.reason, (("no_gyro", tracks.num_tracks),), seconds)
+        rotations, usable_col, with_gyro, flags_all, notes = gyro
         hist = tracks.history[:, : opts.fit_frames]
         n_tracks = hist.shape[0]
         w = hist.shape[1]
@@ -708,89 +859,117 @@ class OwlEngine:
         fit = fit_tracks(bearings_h, tau, mask & enough[:, None], opts.fit_order)
         ok = enough & fit.valid
         young = int(np.count_nonzero(~enough))
-        if young:
-            dropped["young_track"] = young
+        dropped = (("young_track", young),) if young else ()
         if not ok.any():
-            reasons.append(
-                f"no track spans {opts.min_track_frames} frames yet (tracks: {n_tracks})"
-            )
-            timings["integrate"] = self.clock() - t0
-            return finish()
+            why = f"no track spans {opts.min_track_frames} frames yet (tracks: {n_tracks})"
+            seconds = (("integrate", self.clock() - t0),)
+            return StageSkip(why, dropped, seconds, tuple(notes))
         idx = np.flatnonzero(ok)
-        e_now = bearings_h[idx, 0]
-        e = fit.bearing[idx]
-        f = fit.rate[idx]
-        tau_ref = fit.tau_ref[idx]
-        bearing_sigma = opts.pixel_noise_px / max(self.camera.fx, self.camera.fy)
-        f_sigma = fit.gain[idx] * bearing_sigma
-        pixels = tracks.pixels[idx]
-        ids = tracks.ids[idx]
-        timings["integrate"] = self.clock() - t0
-
-        # -------------------------------------------------------------- heading
-        t0 = self.clock()
+        columns = np.flatnonzero(stamps >= 0)
+        columns = columns[columns < opts.fit_frames]
         window_s = float(-tau[columns[columns < w]].min()) if columns.size > 1 else 1.0
-        if with_gyro:
+        bearing_sigma = opts.pixel_noise_px / max(self.camera.fx, self.camera.fy)
+        return _Integrated(
+            stamps=stamps,
+            rotations=rotations,
+            with_gyro=with_gyro,
+            flags_all=flags_all,
+            window_s=window_s,
+            e_now=bearings_h[idx, 0],
+            e=fit.bearing[idx],
+            f=fit.rate[idx],
+            f_sigma=fit.gain[idx] * bearing_sigma,
+            tau_ref=fit.tau_ref[idx],
+            pixels=tracks.pixels[idx],
+            ids=tracks.ids[idx],
+            notes=tuple(notes),
+            dropped=dropped,
+            timings=(("integrate", self.clock() - t0),),
+        )
+
+    def _estimate_heading(
+        self, integ: _Integrated, prev: int | None, stamp: int
+    ) -> _Headed | StageSkip:
+        """Stage 3: heading and leftover rotation from all derotated flows (updates the
+        gyro-bias filter), the heading brought to the current stamp."""
+        t0 = self.clock()
+        opts = self.options
+        if integ.with_gyro:
             self._bias.predict(max(stamp - (prev or stamp), 0) * 1e-9)
             prior = self._bias.cov_camera + np.eye(3) * opts.gyro_noise_density**2 / max(
-                window_s, 1e-3
+                integ.window_s, 1e-3
             )
             if not opts.estimate_bias:
                 prior = prior * 1e-12
         else:
-            prior = gyro_prior
+            prior = opts.no_gyro_rotation_sigma**2 * np.eye(3)
         est = hd.estimate_motion(
-            e,
-            f,
-            f_sigma,
+            integ.e,
+            integ.f,
+            integ.f_sigma,
             prior,
             options=opts.heading,
             rng=self._rng,
-            initial_heading=self._last_heading,
+            initial_heading=self._state.last_heading,
         )
-        if with_gyro and opts.estimate_bias:
+        if integ.with_gyro and opts.estimate_bias:
             self._bias.update(est.rotation_error, est.rotation_cov, prior, opts.bias_inflation)
-        timings["heading"] = self.clock() - t0
+        timings = (("heading", self.clock() - t0),)
         if not est.translating or est.heading is None:
-            reasons.append(est.reason)
-            dropped["no_translation" if not est.translating else "no_heading"] = idx.size
-            self._last_heading = None
-            self._heading_history = []
-            self._speed_state = None
-            return finish()
+            self._state.last_heading = None
+            self._state.heading_history = []
+            self._state.speed_state = None
+            key = "no_translation" if not est.translating else "no_heading"
+            return StageSkip(est.reason, ((key, integ.e.shape[0]),), timings)
         heading_ref = est.heading
-        self._last_heading = heading_ref
+        self._state.last_heading = heading_ref
         heading, heading_sigma = self._heading_now(
-            stamp, heading_ref, float(np.median(tau_ref)), est.heading_sigma_rad, stamps, rotations
+            stamp,
+            heading_ref,
+            float(np.median(integ.tau_ref)),
+            est.heading_sigma_rad,
+            integ.stamps,
+            integ.rotations,
         )
         # remove the leftover rotation found jointly with the heading
-        f = f + motion.cross(est.rotation_error, e)
+        f = integ.f + motion.cross(est.rotation_error, integ.e)
+        return _Headed(est, heading_ref, heading, heading_sigma, f, timings)
 
-        # -------------------------------------------------------------- looming
-        t0 = self.clock()
-        omega = motion.cross(f, e)
-        k = min(opts.neighbours, idx.size - 1)
-        local: motion.LocalFit | None = None
-        if k >= opts.min_neighbours:
-            tree = cKDTree(pixels)
-            dist, nb = tree.query(pixels, k=k + 1, distance_upper_bound=opts.neighbour_radius_px)
-            dist, nb = dist[:, 1:], nb[:, 1:]
-            nb_mask = np.isfinite(dist) & (nb < idx.size)
-            nb_safe = np.where(nb_mask, nb, 0)
-            # neighbours must refer to the same time (tracks of different lengths do not)
-            nb_mask &= np.abs(tau_ref[nb_safe] - tau_ref[:, None]) < 1e-4
-            noise = math.sqrt(2.0) * float(np.median(f_sigma))
-            local = motion.fit_local_looming(
-                e,
-                f,
-                e[nb_safe],
-                f[nb_safe],
-                nb_mask,
-                noise=noise,
-                min_neighbours=opts.min_neighbours,
-                iterations=opts.looming_iterations,
-            )
-        res = np.nan_to_num(est.residuals, nan=0.0)
+    def _local_looming(self, integ: _Integrated, f: FloatArray) -> motion.LocalFit | None:
+        """The local deformation rule over each feature's pixel neighbours (None when there
+        are too few features)."""
+        opts = self.options
+        n = integ.e.shape[0]
+        k = min(opts.neighbours, n - 1)
+        if k < opts.min_neighbours:
+            return None
+        tree = cKDTree(integ.pixels)
+        dist, nb = tree.query(integ.pixels, k=k + 1, distance_upper_bound=opts.neighbour_radius_px)
+        dist, nb = dist[:, 1:], nb[:, 1:]
+        nb_mask = np.isfinite(dist) & (nb < n)
+        nb_safe = np.where(nb_mask, nb, 0)
+        # neighbours must refer to the same time (tracks of different lengths do not)
+        nb_mask &= np.abs(integ.tau_ref[nb_safe] - integ.tau_ref[:, None]) < 1e-4
+        noise = math.sqrt(2.0) * float(np.median(integ.f_sigma))
+        return motion.fit_local_looming(
+            integ.e,
+            f,
+            integ.e[nb_safe],
+            f[nb_safe],
+            nb_mask,
+            noise=noise,
+            min_neighbours=opts.min_neighbours,
+            iterations=opts.looming_iterations,
+        )
+
+    def _movers_and_fused(
+        self, integ: _Integrated, headed: _Headed, omega: FloatArray, local: motion.LocalFit | None
+    ) -> tuple[BoolArray, FloatArray, motion.FusedLooming]:
+        """Independently moving points, the heading-coplanarity residuals, and L fused
+        from the local rule and the heading route (movers excluded from the route)."""
+        opts = self.options
+        e, f_sigma, heading_ref = integ.e, integ.f_sigma, headed.heading_ref
+        res = np.nan_to_num(headed.est.residuals, nan=0.0)
         moving = np.abs(res) > opts.moving_sigma
         # A static point's omega is a positive multiple of e x heading (it lies in front of
         # the camera): a clearly negative multiple is something moving against the flow.
@@ -803,7 +982,7 @@ class OwlEngine:
             omega,
             heading_ref,
             omega_sigma=f_sigma,
-            heading_sigma=est.heading_sigma_rad,
+            heading_sigma=headed.est.heading_sigma_rad,
             min_sin=opts.heading_min_sin,
         )
         if local is not None:
@@ -816,39 +995,56 @@ class OwlEngine:
             np.where(moving, np.inf, route.variance),
             route.valid & ~moving,
         )
-        fused = motion.fuse_looming(local, route, idx.size, max_disagreement=opts.moving_sigma)
-        at_ref = motion.owl_quantities(e, fused.looming, omega, min_tor=opts.min_tor)
-        # Bring each point from its fit's reference time to the current stamp: under a
-        # constant relative velocity the scaled point moves by -heading per second.
+        fused = motion.fuse_looming(local, route, e.shape[0], max_disagreement=opts.moving_sigma)
+        return moving, res, fused
+
+    def _to_now(
+        self,
+        integ: _Integrated,
+        headed: _Headed,
+        at_ref: motion.OwlQuantities,
+        moving: BoolArray,
+        stamp: int,
+    ) -> tuple[FloatArray, FloatArray, BoolArray]:
+        """Each point from its fit's reference time to the current stamp: (N,) L now, 1/s,
+        (N, 3) omega now, 1/s, and which points are still valid and in front."""
+        e_now, tau_ref = integ.e_now, integ.tau_ref
+        # Under a constant relative velocity the scaled point moves by -heading per second.
         # The fused heading turned from heading_ref to heading meanwhile (a curving path);
         # turn every point's heading with it (trapezoid rule for the displacement).
-        turn = _small_rotation(heading_ref, heading)
+        turn = _small_rotation(headed.heading_ref, headed.heading)
         h_ref_i = np.where(at_ref.valid[:, None], at_ref.heading, 0.0)
         h_now_i = h_ref_i @ turn.T
         point_now = at_ref.points + 0.5 * (h_ref_i + h_now_i) * tau_ref[:, None]
-        ros_now = np.linalg.norm(point_now, axis=1)
+        range_over_speed_now = np.linalg.norm(point_now, axis=1)
         ahead = np.einsum("ni,ni->n", point_now, e_now) > 0
-        ok_now = at_ref.valid & ahead & (ros_now > 0)
+        ok_now = at_ref.valid & ahead & (range_over_speed_now > 0)
         h_i = np.where(ok_now[:, None], h_now_i, 0.0)
         # point_now is in units of the speed at the fit reference time; a changing speed
         # (rate s = d ln|t|/dt, measured from frame to frame) rescales it to the current one
-        speed_rate = self._update_speed_rate(stamp, ids, point_now, h_i, ok_now & ~moving)
-        safe_ros = np.where(ok_now, ros_now * np.exp(speed_rate * tau_ref), 1.0)
-        looming_now = np.einsum("ni,ni->n", h_i, e_now) / safe_ros
-        omega_now = motion.cross(e_now, h_i) / safe_ros[:, None]
-        quantities = motion.owl_quantities(e_now, looming_now, omega_now, min_tor=opts.min_tor)
-        quantities = motion.OwlQuantities(
-            quantities.tor,
-            quantities.rot,
-            quantities.range_over_speed,
-            quantities.points,
-            quantities.heading,
-            quantities.alpha,
-            quantities.valid & ok_now,
+        speed_rate = self._update_speed_rate(stamp, integ.ids, point_now, h_i, ok_now & ~moving)
+        safe = np.where(ok_now, range_over_speed_now * np.exp(speed_rate * tau_ref), 1.0)
+        looming_now = np.einsum("ni,ni->n", h_i, e_now) / safe
+        omega_now = motion.cross(e_now, h_i) / safe[:, None]
+        return looming_now, omega_now, ok_now
+
+    def _looming(self, integ: _Integrated, headed: _Headed, stamp: int) -> _Loomed:
+        """Stage 4: L per feature (local rule fused with the heading route), movers, the
+        OWL quantities at the current stamp, quality and flags."""
+        t0 = self.clock()
+        opts = self.options
+        e, f = integ.e, headed.f
+        omega = motion.cross(f, e)
+        local = self._local_looming(integ, f)
+        moving, res, fused = self._movers_and_fused(integ, headed, omega, local)
+        at_ref = motion.owl_quantities(e, fused.looming, omega, min_tor=opts.min_tor)
+        looming_now, omega_now, ok_now = self._to_now(integ, headed, at_ref, moving, stamp)
+        quantities = motion.owl_quantities(
+            integ.e_now, looming_now, omega_now, min_tor=opts.min_tor
         )
-        q_local = (
-            np.where(local.valid, local.quality, 1.0) if local is not None else np.ones(idx.size)
-        )
+        valid = quantities.valid & ok_now
+        n = e.shape[0]
+        q_local = np.where(local.valid, local.quality, 1.0) if local is not None else np.ones(n)
         # precision: relative 1-sigma of L against |ToR| (= relative sigma of r/|t|)
         tor_ref = np.sqrt(np.nan_to_num(at_ref.tor[:, 0]) ** 2 + np.sum(omega**2, axis=1))
         rel_sigma = np.sqrt(np.where(fused.valid, fused.variance, np.inf)) / np.maximum(
@@ -856,40 +1052,63 @@ class OwlEngine:
         )
         q_precision = 1.0 / (1.0 + (rel_sigma / opts.quality_rel_sigma) ** 2)
         quality = q_local * q_precision / (1.0 + (res / opts.moving_sigma) ** 2)
-        flags = fused.flags | flags_all
+        flags = fused.flags | integ.flags_all
         flags = flags | np.where(moving, np.uint8(PointFlag.MOVING), np.uint8(0))
         flags = flags | np.where(
             quality < opts.min_quality, np.uint8(PointFlag.LOW_QUALITY), np.uint8(0)
         )
-        keep = fused.valid & quantities.valid
+        keep = fused.valid & valid
         no_l = int(np.count_nonzero(~fused.valid))
-        if no_l:
-            dropped["no_looming"] = no_l
-        no_tor = int(np.count_nonzero(fused.valid & ~quantities.valid))
-        if no_tor:
-            dropped["no_translation_signal"] = no_tor
-        timings["looming"] = self.clock() - t0
+        no_tor = int(np.count_nonzero(fused.valid & ~valid))
+        dropped: tuple[tuple[str, int], ...] = (("no_looming", no_l),) if no_l else ()
+        dropped += (("no_translation_signal", no_tor),) if no_tor else ()
+        notes: tuple[str, ...] = ()
         if not keep.any():
-            reasons.append("no feature has a looming estimate (too few neighbours, at the FOE)")
+            notes = ("no feature has a looming estimate (too few neighbours, at the FOE)",)
         elif no_l:
-            reasons.append(f"{no_l} features without L (too few neighbours or at the FOE)")
-        timings["total"] = self.clock() - t_start
+            notes = (f"{no_l} features without L (too few neighbours or at the FOE)",)
+        return _Loomed(
+            looming=looming_now,
+            omega=omega_now,
+            rot=quantities.rot,
+            range_over_speed=quantities.range_over_speed,
+            points=quantities.points,
+            quality=quality,
+            flags=flags,
+            keep=keep,
+            notes=notes,
+            dropped=dropped,
+            timings=(("looming", self.clock() - t0),),
+        )
+
+    def _compose(
+        self,
+        stamp: int,
+        integ: _Integrated,
+        headed: _Headed,
+        loomed: _Loomed,
+        log: _FrameLog,
+        t_start: float,
+    ) -> FrameResult:
+        """Stage 5: the frame's result, the points that have L and a translation signal."""
+        keep = loomed.keep
+        log.timings["total"] = self.clock() - t_start
         return FrameResult(
             stamp_ns=stamp,
-            pixels=pixels[keep],
-            bearings=e_now[keep],
-            looming=looming_now[keep],
-            omega=omega_now[keep],
-            rot=quantities.rot[keep],
-            range_over_speed=quantities.range_over_speed[keep],
-            points=quantities.points[keep],
-            quality=quality[keep],
-            ids=ids[keep].astype(np.uint32),
-            flags=flags[keep].astype(np.uint8),
-            heading=heading.copy(),
-            heading_sigma_rad=heading_sigma,
+            pixels=integ.pixels[keep],
+            bearings=integ.e_now[keep],
+            looming=loomed.looming[keep],
+            omega=loomed.omega[keep],
+            rot=loomed.rot[keep],
+            range_over_speed=loomed.range_over_speed[keep],
+            points=loomed.points[keep],
+            quality=loomed.quality[keep],
+            ids=integ.ids[keep].astype(np.uint32),
+            flags=loomed.flags[keep].astype(np.uint8),
+            heading=headed.heading.copy(),
+            heading_sigma_rad=headed.heading_sigma,
             gyro_bias=self._bias.bias.copy(),
-            timings=timings,
-            reasons=tuple(reasons),
-            dropped=dropped,
+            timings=log.timings,
+            reasons=tuple(log.reasons),
+            dropped=log.dropped,
         )

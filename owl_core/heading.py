@@ -240,6 +240,129 @@ def _refine(
     return cost, h, delta, cov
 
 
+def _heading_starts(
+    es: FloatArray,
+    fs: FloatArray,
+    ss: FloatArray,
+    nvec: FloatArray,
+    prior: FloatArray,
+    opts: HeadingOptions,
+    rng: np.random.Generator,
+    initial_heading: npt.ArrayLike | None,
+) -> list[FloatArray]:
+    """RANSAC (MSAC score) on the heading with delta = 0, h = n_a x n_b for two random
+    points: the starts for the refinement, best first, at least 2 deg apart; the
+    ``initial_heading`` (3,) first when given. ``nvec`` (M, 3) = e x f."""
+    m = opts.ransac_hypotheses
+    pairs = rng.integers(0, es.shape[0], size=(m, 2))
+    hyp = cross(nvec[pairs[:, 0]], nvec[pairs[:, 1]])
+    hn = np.linalg.norm(hyp, axis=1)
+    hyp = hyp[hn > 0] / hn[hn > 0, None]
+    if hyp.shape[0] == 0:
+        hyp = np.array([[0.0, 0.0, 1.0]])
+    res_h = coplanarity_residuals(hyp, es, fs, min_sin=opts.min_sin) / ss
+    # Prior rotation uncertainty widens the gate: delta moves each residual by up to |delta|.
+    gate = opts.inlier_sigma + np.sqrt(np.trace(prior)) / np.median(ss)
+    score = np.sum(np.minimum((res_h / gate) ** 2, 1.0), axis=1)  # MSAC
+    order = np.argsort(score)
+    starts: list[FloatArray] = []
+    if initial_heading is not None:
+        h_init = np.asarray(initial_heading, dtype=np.float64)
+        if h_init.shape != (3,) or not np.all(np.isfinite(h_init)) or not np.any(h_init):
+            raise InvalidInputError(f"initial_heading must be a finite (3,) vector, got {h_init}")
+        starts.append(h_init / np.linalg.norm(h_init))
+    # Greedy, best score first: a hypothesis within 2 deg of a chosen start is skipped
+    # (at least the best hypothesis is considered, as a candidate next to a warm start).
+    wanted = opts.starts if initial_heading is None else 1 + opts.warm_starts
+    cands = hyp[order]
+    cos_lim = np.cos(np.radians(2.0))
+    free = np.ones(cands.shape[0], dtype=bool)
+    for s0 in starts:
+        free &= np.abs(cands @ s0) < cos_lim
+    pos = 0
+    while pos < cands.shape[0]:
+        nxt = np.flatnonzero(free[pos:])
+        if nxt.size == 0 or (len(starts) >= wanted and nxt[0] > 0):
+            break
+        pos += int(nxt[0])
+        starts.append(cands[pos])
+        free &= np.abs(cands @ cands[pos]) < cos_lim
+        pos += 1
+        if len(starts) >= wanted:
+            break
+    return starts
+
+
+def _refine_best(
+    starts: list[FloatArray],
+    es: FloatArray,
+    fs: FloatArray,
+    ss: FloatArray,
+    nvec: FloatArray,
+    prior_inv: FloatArray,
+    opts: HeadingOptions,
+    estimate_rotation: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Gauss-Newton from each start, keeping the lowest robust cost (the bilinear problem
+    has local minima): heading h (3,), rotation delta (3,), rad/s, and the (5, 5)
+    covariance scaled by the inliers' residual variance when it exceeds the model's."""
+    best: tuple[float, FloatArray, FloatArray, FloatArray] | None = None
+    for h0 in starts:
+        cost, h, delta, cov = _refine(h0, es, fs, ss, nvec, prior_inv, opts, estimate_rotation)
+        if best is None or cost < best[0]:
+            best = (cost, h, delta, cov)
+    if best is None:  # pragma: no cover - starts always has one entry
+        raise InvalidInputError("no heading hypothesis")
+    _, h, delta, cov = best
+    # (a 3-sigma gate keeps 97.3 % of a unit normal, whose truncated variance is 0.9733)
+    res_s = coplanarity_residuals(h, es, fs, delta, opts.min_sin) / ss
+    inl_res = res_s[np.abs(res_s) < opts.inlier_sigma]
+    chi2 = float(np.sum(inl_res**2)) / max(inl_res.size - 5.0, 1.0) / 0.9733
+    return h, delta, cov * max(chi2, 1.0)
+
+
+def _final_inliers(
+    h: FloatArray,
+    delta: FloatArray,
+    eu: FloatArray,
+    fu: FloatArray,
+    su: FloatArray,
+    opts: HeadingOptions,
+) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """Final residuals (M,), in sigmas, and inlier flags (M,) for every usable point (M, 3
+    bearings ``eu``, rates ``fu``, sigmas ``su``), and h (3,) signed so that the inliers
+    lie in front (f_true . h < 0, noise allowed)."""
+    res = coplanarity_residuals(h, eu, fu, delta, opts.min_sin) / su
+    sin = np.maximum(np.sqrt(np.maximum(1.0 - (eu @ h) ** 2, 0.0)), opts.min_sin)
+    inl_u = np.abs(res) < opts.inlier_sigma
+    f_true = fu + cross(delta, eu)
+    inl_u &= (f_true @ h) < opts.inlier_sigma * su * sin
+    if np.sum(f_true[inl_u] @ h) > 0:
+        h = -h
+    return h, res, inl_u
+
+
+def _check_motion_inputs(
+    bearings: npt.ArrayLike,
+    derotated: npt.ArrayLike,
+    flow_sigma: float | npt.ArrayLike,
+    rotation_prior_cov: npt.ArrayLike,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`estimate_motion`'s inputs as float64 arrays: e (N, 3), f (N, 3), sigma (N,),
+    prior (3, 3); InvalidInputError quoting a wrong shape."""
+    e = np.asarray(bearings, dtype=np.float64)
+    f = np.asarray(derotated, dtype=np.float64)
+    if e.ndim != 2 or e.shape[1] != 3 or f.shape != e.shape:
+        raise InvalidInputError(
+            f"bearings and derotated must both have shape (N, 3), got {e.shape} and {f.shape}"
+        )
+    sigma = np.broadcast_to(np.asarray(flow_sigma, dtype=np.float64), (e.shape[0],)).copy()
+    prior = np.asarray(rotation_prior_cov, dtype=np.float64)
+    if prior.shape != (3, 3):
+        raise InvalidInputError(f"rotation_prior_cov must have shape (3, 3), got {prior.shape}")
+    return e, f, sigma, prior
+
+
 def estimate_motion(
     bearings: npt.ArrayLike,
     derotated: npt.ArrayLike,
@@ -268,17 +391,8 @@ def estimate_motion(
         :class:`MotionEstimate`.
     """
     opts = options or HeadingOptions()
-    e = np.asarray(bearings, dtype=np.float64)
-    f = np.asarray(derotated, dtype=np.float64)
-    if e.ndim != 2 or e.shape[1] != 3 or f.shape != e.shape:
-        raise InvalidInputError(
-            f"bearings and derotated must both have shape (N, 3), got {e.shape} and {f.shape}"
-        )
+    e, f, sigma, prior = _check_motion_inputs(bearings, derotated, flow_sigma, rotation_prior_cov)
     n = e.shape[0]
-    sigma = np.broadcast_to(np.asarray(flow_sigma, dtype=np.float64), (n,)).copy()
-    prior = np.asarray(rotation_prior_cov, dtype=np.float64)
-    if prior.shape != (3, 3):
-        raise InvalidInputError(f"rotation_prior_cov must have shape (3, 3), got {prior.shape}")
     rng = rng or np.random.default_rng(0)
     usable = np.all(np.isfinite(e), axis=1) & np.all(np.isfinite(f), axis=1)
     usable &= np.isfinite(sigma) & (sigma > 0)
@@ -327,69 +441,10 @@ def estimate_motion(
 
     # 2. RANSAC on the heading with delta = 0: h = n_a x n_b for two random points.
     nvec = cross(es, fs)
-    m = opts.ransac_hypotheses
-    pairs = rng.integers(0, es.shape[0], size=(m, 2))
-    hyp = cross(nvec[pairs[:, 0]], nvec[pairs[:, 1]])
-    hn = np.linalg.norm(hyp, axis=1)
-    hyp = hyp[hn > 0] / hn[hn > 0, None]
-    if hyp.shape[0] == 0:
-        hyp = np.array([[0.0, 0.0, 1.0]])
-    res_h = coplanarity_residuals(hyp, es, fs, min_sin=opts.min_sin) / ss
-    # Prior rotation uncertainty widens the gate: delta moves each residual by up to |delta|.
-    gate = opts.inlier_sigma + np.sqrt(np.trace(prior)) / np.median(ss)
-    score = np.sum(np.minimum((res_h / gate) ** 2, 1.0), axis=1)  # MSAC
-    order = np.argsort(score)
-    starts: list[FloatArray] = []
-    if initial_heading is not None:
-        h_init = np.asarray(initial_heading, dtype=np.float64)
-        if h_init.shape != (3,) or not np.all(np.isfinite(h_init)) or not np.any(h_init):
-            raise InvalidInputError(f"initial_heading must be a finite (3,) vector, got {h_init}")
-        starts.append(h_init / np.linalg.norm(h_init))
-    # Greedy, best score first: a hypothesis within 2 deg of a chosen start is skipped
-    # (at least the best hypothesis is considered, as a candidate next to a warm start).
-    wanted = opts.starts if initial_heading is None else 1 + opts.warm_starts
-    cands = hyp[order]
-    cos_lim = np.cos(np.radians(2.0))
-    free = np.ones(cands.shape[0], dtype=bool)
-    for s0 in starts:
-        free &= np.abs(cands @ s0) < cos_lim
-    pos = 0
-    while pos < cands.shape[0]:
-        nxt = np.flatnonzero(free[pos:])
-        if nxt.size == 0 or (len(starts) >= wanted and nxt[0] > 0):
-            break
-        pos += int(nxt[0])
-        starts.append(cands[pos])
-        free &= np.abs(cands @ cands[pos]) < cos_lim
-        pos += 1
-        if len(starts) >= wanted:
-            break
-
-    # 3. Gauss-Newton with Cauchy weights on (h, delta), prior on delta, from each start;
-    # keep the lowest robust cost (the bilinear problem has local minima).
-    best: tuple[float, FloatArray, FloatArray, FloatArray] | None = None
-    for h0 in starts:
-        cost, h, delta, cov = _refine(h0, es, fs, ss, nvec, prior_inv, opts, estimate_rotation)
-        if best is None or cost < best[0]:
-            best = (cost, h, delta, cov)
-    if best is None:  # pragma: no cover - starts always has one entry
-        raise InvalidInputError("no heading hypothesis")
-    _, h, delta, cov = best
-    # Scale the covariance by the inliers' residual variance when it exceeds the model's
-    # (a 3-sigma gate keeps 97.3 % of a unit normal, whose truncated variance is 0.9733).
-    res_s = coplanarity_residuals(h, es, fs, delta, opts.min_sin) / ss
-    inl_res = res_s[np.abs(res_s) < opts.inlier_sigma]
-    chi2 = float(np.sum(inl_res**2)) / max(inl_res.size - 5.0, 1.0) / 0.9733
-    cov = cov * max(chi2, 1.0)
-    # final residuals and flags for every usable point
-    res = coplanarity_residuals(h, eu, fu, delta, opts.min_sin) / su
-    sin = np.maximum(np.sqrt(np.maximum(1.0 - (eu @ h) ** 2, 0.0)), opts.min_sin)
-    inl_u = np.abs(res) < opts.inlier_sigma
-    # point in front: f_true . h < 0 (allow noise)
-    f_true = fu + cross(delta, eu)
-    inl_u &= (f_true @ h) < opts.inlier_sigma * su * sin
-    if np.sum(f_true[inl_u] @ h) > 0:
-        h = -h
+    starts = _heading_starts(es, fs, ss, nvec, prior, opts, rng, initial_heading)
+    # 3. Gauss-Newton with Cauchy weights on (h, delta), prior on delta, from each start.
+    h, delta, cov = _refine_best(starts, es, fs, ss, nvec, prior_inv, opts, estimate_rotation)
+    h, res, inl_u = _final_inliers(h, delta, eu, fu, su, opts)
     residuals[usable] = res
     inliers = np.zeros(n, dtype=bool)
     inliers[usable] = inl_u
@@ -439,9 +494,13 @@ class GyroBiasFilter:
         random_walk: float = 1e-4,
         initial_bias: npt.ArrayLike = (0.0, 0.0, 0.0),
     ) -> None:
-        rot = np.eye(3) if camera_to_imu is None else np.asarray(camera_to_imu, dtype=np.float64)
-        if rot.shape != (3, 3):
-            raise InvalidInputError(f"camera_to_imu must have shape (3, 3), got {rot.shape}")
+        cam_to_imu = (
+            np.eye(3) if camera_to_imu is None else np.asarray(camera_to_imu, dtype=np.float64)
+        )
+        if cam_to_imu.shape != (3, 3):
+            raise InvalidInputError(
+                f"camera_to_imu must have shape (3, 3), got {cam_to_imu.shape}"
+            )
         if not initial_sigma > 0 or not random_walk >= 0:
             raise InvalidInputError(
                 f"initial_sigma must be > 0 and random_walk >= 0, got {initial_sigma}, "
@@ -450,7 +509,7 @@ class GyroBiasFilter:
         b0 = np.asarray(initial_bias, dtype=np.float64)
         if b0.shape != (3,):
             raise InvalidInputError(f"initial_bias must have shape (3,), got {b0.shape}")
-        self._rot = rot
+        self._cam_to_imu = cam_to_imu
         self._initial_sigma = float(initial_sigma)
         self._random_walk = float(random_walk)
         self._initial_bias = b0.copy()
@@ -469,12 +528,12 @@ class GyroBiasFilter:
     @property
     def bias_camera(self) -> FloatArray:
         """(3,) bias in the camera frame, rad/s."""
-        return np.asarray(self._rot.T @ self.bias, dtype=np.float64)
+        return np.asarray(self._cam_to_imu.T @ self.bias, dtype=np.float64)
 
     @property
     def cov_camera(self) -> FloatArray:
         """(3, 3) bias covariance in the camera frame, (rad/s)^2."""
-        return np.asarray(self._rot.T @ self.cov @ self._rot, dtype=np.float64)
+        return np.asarray(self._cam_to_imu.T @ self.cov @ self._cam_to_imu, dtype=np.float64)
 
     def predict(self, dt_s: float) -> None:
         """Grow the uncertainty by the random walk over ``dt_s`` seconds (>= 0)."""
@@ -535,8 +594,8 @@ class GyroBiasFilter:
         new_cov_cam = np.linalg.inv(info_state + info_meas)
         # the state's own mean in delta-space is 0 (the derotation used self.bias)
         delta = new_cov_cam @ y
-        self.bias = self.bias - self._rot @ delta
-        self.cov = self._rot @ new_cov_cam @ self._rot.T
+        self.bias = self.bias - self._cam_to_imu @ delta
+        self.cov = self._cam_to_imu @ new_cov_cam @ self._cam_to_imu.T
         self.cov = 0.5 * (self.cov + self.cov.T)
         self.updates += 1
         return True

@@ -164,17 +164,17 @@ def owl_quantities(
     safe2 = np.where(valid, norm2, 1.0)
     norm = np.sqrt(safe2)
     rot = np.concatenate([lo[:, None], -w], axis=1) / safe2[:, None]
-    ros = 1.0 / norm
-    points = e * ros[:, None]
+    range_over_speed = 1.0 / norm
+    points = e * range_over_speed[:, None]
     heading = (lo[:, None] * e + cross(w, e)) / norm[:, None]
     alpha = np.arctan2(np.linalg.norm(w, axis=1), lo)
     nan = ~valid
     rot[nan] = np.nan
-    ros[nan] = np.nan
+    range_over_speed[nan] = np.nan
     points[nan] = np.nan
     heading[nan] = np.nan
     alpha[nan] = np.nan
-    return OwlQuantities(tor, rot, ros, points, heading, alpha, valid)
+    return OwlQuantities(tor, rot, range_over_speed, points, heading, alpha, valid)
 
 
 def tangent_basis(bearings: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
@@ -265,6 +265,124 @@ class LocalFit:
 _NORMAL_INDEX = np.array([0, 1, 2, 15, 1, 12, 13, 6, 2, 13, 14, 7, 15, 6, 7, 0])
 
 
+def _check_neighbours(
+    n: int,
+    neighbour_bearings: npt.ArrayLike,
+    neighbour_derotated: npt.ArrayLike,
+    neighbour_mask: npt.ArrayLike | None,
+    min_neighbours: int,
+    noise: float,
+    iterations: int,
+) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_]]:
+    """:func:`fit_local_looming`'s neighbour inputs: bearings and rates (N, k, 3) and the
+    (N, k) mask; InvalidInputError quoting a wrong shape or value."""
+    nb = np.asarray(neighbour_bearings, dtype=np.float64)
+    nf = np.asarray(neighbour_derotated, dtype=np.float64)
+    if nb.ndim != 3 or nb.shape[0] != n or nb.shape[2] != 3:
+        raise InvalidInputError(f"neighbour_bearings must have shape ({n}, k, 3), got {nb.shape}")
+    if nf.shape != nb.shape:
+        raise InvalidInputError(f"neighbour_derotated must have shape {nb.shape}, got {nf.shape}")
+    k = nb.shape[1]
+    if neighbour_mask is None:
+        mask = np.ones((n, k), dtype=bool)
+    else:
+        mask = np.asarray(neighbour_mask, dtype=bool)
+        if mask.shape != (n, k):
+            raise InvalidInputError(f"neighbour_mask must have shape ({n}, {k}), got {mask.shape}")
+    if min_neighbours < 2:
+        raise InvalidInputError(f"min_neighbours must be >= 2, got {min_neighbours}")
+    if not noise > 0.0:
+        raise InvalidInputError(f"noise must be > 0, got {noise}")
+    if iterations < 0:
+        raise InvalidInputError(f"iterations must be >= 0, got {iterations}")
+    return nb, nf, mask
+
+
+def _chart_products(d: FloatArray, dv: FloatArray, f2: FloatArray) -> FloatArray:
+    """(N, 12, k) per-neighbour products whose weighted sums are the local rule's normal
+    equations, from chart offsets d (N, k, 2), relative velocities dv (N, k, 2) and the
+    feature's chart rate f2 (N, 2)."""
+    d1, d2 = d[..., 0], d[..., 1]
+    v1, v2 = dv[..., 0], dv[..., 1]
+    fa, fb = f2[:, 0:1], f2[:, 1:2]
+    dd = d1 * d1 + d2 * d2
+    fd = fa * d1 + fb * d2  # f . d
+    fxd = fa * d2 - fb * d1  # f x d (z component)
+    products = np.stack(
+        [
+            dd,  # N00 = N33
+            d1 * fd,  # N01
+            d2 * fd,  # N02
+            d1 * d1,  # N11 / |f|^2
+            d1 * d2,  # N12 / |f|^2
+            d2 * d2,  # N22 / |f|^2
+            -d1 * fxd,  # N13
+            -d2 * fxd,  # N23
+            d1 * v1 + d2 * v2,  # b0
+            d1 * (fa * v1 + fb * v2),  # b1
+            d2 * (fa * v1 + fb * v2),  # b2
+            d1 * v2 - d2 * v1,  # b3
+        ],
+        axis=1,
+    )  # (N, 12, k)
+    return products
+
+
+def _local_fit_result(
+    x: FloatArray,
+    inv00: FloatArray,
+    weights: FloatArray,
+    resid: FloatArray,
+    good: npt.NDArray[np.bool_],
+    normal: FloatArray,
+    radius: FloatArray,
+    noise: float,
+    min_neighbours: int,
+    max_l_sigma: float,
+) -> LocalFit:
+    """The :class:`LocalFit` from the last IRLS solve: x (N, 4) = (L, g1, g2, c), the
+    (0, 0) element of the inverse normal matrix (N,), weights and residuals (N, k)."""
+    wsum = np.sum(weights, axis=1)
+    used = np.sum(weights > 0.5, axis=1)
+    dof = np.maximum(2.0 * wsum - 4.0, 1.0)
+    rms = np.sqrt(np.sum(weights * resid**2, axis=1) / dof)
+    sigma2 = np.maximum(rms, noise) ** 2
+    # L and c are observable from the offsets alone (their normal block is sum |d|^2 I).
+    valid = good & (used >= min_neighbours) & (normal[:, 0, 0] > 0)
+    valid &= np.all(np.isfinite(x), axis=1) & np.isfinite(inv00)
+    cov00 = np.where(valid, inv00, 1.0) / radius**2
+    variance = np.where(valid, sigma2 * cov00, np.inf)
+    valid &= np.sqrt(variance) <= max_l_sigma
+    variance = np.where(valid, variance, np.inf)
+    quality = np.where(valid, 1.0 / (1.0 + (np.maximum(rms - noise, 0.0) / noise) ** 2), 0.0)
+    looming = np.where(valid, x[:, 0], np.nan)
+    slant = np.where(valid[:, None], x[:, 1:3], np.nan)
+    curl = np.where(valid, x[:, 3], np.nan)
+    return LocalFit(looming, variance, slant, curl, rms, quality, used.astype(np.int64), valid)
+
+
+def _cauchy_weights(
+    resid: FloatArray, mask: npt.NDArray[np.bool_], noise: float, robust_scale: float
+) -> FloatArray:
+    """IRLS weights (N, k) ``1/(1 + (res/(robust_scale * s))^2)``; s per feature = the
+    median absolute residual over its used neighbours x 1.4826, at least ``noise``."""
+    ordered = np.sort(np.where(mask, resid, np.inf), axis=1)  # masked last
+    mid = np.maximum(mask.sum(axis=1) - 1, 0) // 2
+    med = np.take_along_axis(ordered, mid[:, None], axis=1)[:, 0]
+    scale = np.maximum(np.where(np.isfinite(med), med, noise) * 1.4826, noise)
+    u = resid / (robust_scale * scale[:, None])
+    return np.asarray(mask / (1.0 + u * u), dtype=np.float64)
+
+
+def _slant_ridge(noise: float, slant_prior: float, radius: FloatArray) -> FloatArray:
+    """(N, 4, 4) ridge of the slant prior on the (g1, g2) block of the normal equations."""
+    ridge_g = np.maximum(noise**2 / (slant_prior**2 * radius**2), 1e-14)
+    ridge = np.zeros((radius.shape[0], 4, 4))
+    ridge[:, 1, 1] = ridge_g
+    ridge[:, 2, 2] = ridge_g
+    return ridge
+
+
 def fit_local_looming(
     bearings: npt.ArrayLike,
     derotated: npt.ArrayLike,
@@ -307,25 +425,16 @@ def fit_local_looming(
     e = _as_vectors("bearings", bearings)
     f = _as_vectors("derotated", derotated)
     n = _check_same_n(bearings=e, derotated=f)
-    nb = np.asarray(neighbour_bearings, dtype=np.float64)
-    nf = np.asarray(neighbour_derotated, dtype=np.float64)
-    if nb.ndim != 3 or nb.shape[0] != n or nb.shape[2] != 3:
-        raise InvalidInputError(f"neighbour_bearings must have shape ({n}, k, 3), got {nb.shape}")
-    if nf.shape != nb.shape:
-        raise InvalidInputError(f"neighbour_derotated must have shape {nb.shape}, got {nf.shape}")
+    nb, nf, mask = _check_neighbours(
+        n,
+        neighbour_bearings,
+        neighbour_derotated,
+        neighbour_mask,
+        min_neighbours,
+        noise,
+        iterations,
+    )
     k = nb.shape[1]
-    if neighbour_mask is None:
-        mask = np.ones((n, k), dtype=bool)
-    else:
-        mask = np.asarray(neighbour_mask, dtype=bool)
-        if mask.shape != (n, k):
-            raise InvalidInputError(f"neighbour_mask must have shape ({n}, {k}), got {mask.shape}")
-    if min_neighbours < 2:
-        raise InvalidInputError(f"min_neighbours must be >= 2, got {min_neighbours}")
-    if not noise > 0.0:
-        raise InvalidInputError(f"noise must be > 0, got {noise}")
-    if iterations < 0:
-        raise InvalidInputError(f"iterations must be >= 0, got {iterations}")
 
     d, dv, f2 = gnomonic_chart(e, f, nb, nf)
     mask = mask & np.all(np.isfinite(d), axis=2) & np.all(np.isfinite(dv), axis=2)
@@ -339,36 +448,14 @@ def fit_local_looming(
     fa, fb = f2[:, 0:1], f2[:, 1:2]
     ff = (fa * fa + fb * fb)[:, 0]
     dd = d1 * d1 + d2 * d2
-    fd = fa * d1 + fb * d2  # f . d
-    fxd = fa * d2 - fb * d1  # f x d (z component)
-    products = np.stack(
-        [
-            dd,  # N00 = N33
-            d1 * fd,  # N01
-            d2 * fd,  # N02
-            d1 * d1,  # N11 / |f|^2
-            d1 * d2,  # N12 / |f|^2
-            d2 * d2,  # N22 / |f|^2
-            -d1 * fxd,  # N13
-            -d2 * fxd,  # N23
-            d1 * v1 + d2 * v2,  # b0
-            d1 * (fa * v1 + fb * v2),  # b1
-            d2 * (fa * v1 + fb * v2),  # b2
-            d1 * v2 - d2 * v1,  # b3
-        ],
-        axis=1,
-    )  # (N, 12, k)
+    products = _chart_products(d, dv, f2)  # (N, 12, k)
     # Normalise by the neighbourhood size so conditioning does not depend on the radius.
     radius = np.sqrt(np.sum(np.where(mask, dd, 0.0), axis=1) / np.maximum(mask.sum(axis=1), 1))
     radius = np.where(radius > 0, radius, 1.0)
     weights = mask.astype(np.float64)
-    ridge_g = np.maximum(noise**2 / (slant_prior**2 * radius**2), 1e-14)
-    ridge = np.zeros((n, 4, 4))
-    ridge[:, 1, 1] = ridge_g
-    ridge[:, 2, 2] = ridge_g
+    ridge = _slant_ridge(noise, slant_prior, radius)
     x = np.zeros((n, 4))
     resid = np.zeros((n, k))
-    scale = np.full(n, noise)
     ok = mask.sum(axis=1) >= min_neighbours
     normal = np.zeros((n, 4, 4))
     r2 = radius**2
@@ -388,31 +475,11 @@ def fit_local_looming(
         resid = np.sqrt(r_1 * r_1 + r_2 * r_2)
         if it == iterations:
             break
-        # Robust scale: median absolute residual per feature (over its used neighbours).
-        ordered = np.sort(np.where(mask, resid, np.inf), axis=1)  # masked last
-        mid = np.maximum(mask.sum(axis=1) - 1, 0) // 2
-        med = np.take_along_axis(ordered, mid[:, None], axis=1)[:, 0]
-        scale = np.maximum(np.where(np.isfinite(med), med, noise) * 1.4826, noise)
-        u = resid / (robust_scale * scale[:, None])
-        weights = mask / (1.0 + u * u)
+        weights = _cauchy_weights(resid, mask, noise, robust_scale)
 
-    wsum = np.sum(weights, axis=1)
-    used = np.sum(weights > 0.5, axis=1)
-    dof = np.maximum(2.0 * wsum - 4.0, 1.0)
-    rms = np.sqrt(np.sum(weights * resid**2, axis=1) / dof)
-    sigma2 = np.maximum(rms, noise) ** 2
-    # L and c are observable from the offsets alone (their normal block is sum |d|^2 I).
-    valid = good & (used >= min_neighbours) & (normal[:, 0, 0] > 0)
-    valid &= np.all(np.isfinite(x), axis=1) & np.isfinite(inv00)
-    cov00 = np.where(valid, inv00, 1.0) / radius**2
-    variance = np.where(valid, sigma2 * cov00, np.inf)
-    valid &= np.sqrt(variance) <= max_l_sigma
-    variance = np.where(valid, variance, np.inf)
-    quality = np.where(valid, 1.0 / (1.0 + (np.maximum(rms - noise, 0.0) / noise) ** 2), 0.0)
-    looming = np.where(valid, x[:, 0], np.nan)
-    slant = np.where(valid[:, None], x[:, 1:3], np.nan)
-    curl = np.where(valid, x[:, 3], np.nan)
-    return LocalFit(looming, variance, slant, curl, rms, quality, used.astype(np.int64), valid)
+    return _local_fit_result(
+        x, inv00, weights, resid, good, normal, radius, noise, min_neighbours, max_l_sigma
+    )
 
 
 def _solve_spd4(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:

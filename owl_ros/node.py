@@ -10,8 +10,9 @@ publishes. Topics, parameters and diagnostics are described in ``docs`` / contra
 Subscriptions (best effort, keep last: they match drivers and replayed bags): ``image``
 (or ``image/compressed`` with ``image_transport: compressed``), ``camera_info``, ``imu``
 and, with ``speed_source`` odometry/twist, ``speed_topic``. Publications (reliable, keep
-last 10): ``owl/points``, ``owl/heading``, ``/diagnostics`` and ``owl/debug_image`` (built
-only while someone subscribes). QoS-incompatible peers are reported in ``/diagnostics``.
+last 10): ``owl/points``, ``owl/heading``, ``owl/gyro_bias``, ``/diagnostics`` and
+``owl/debug_image`` (built only while someone subscribes). QoS-incompatible peers are
+reported in ``/diagnostics``.
 
 Time: header stamps only for the maths; the node's clock (``use_sim_time`` honoured) only
 stamps diagnostics and measures stamp -> publication latency; waits are on a monotonic
@@ -50,6 +51,7 @@ from owl_ros.dense_outputs import DensePublishers
 from owl_ros.extrinsic_tf import TfExtrinsic, tf_available
 from owl_ros.params import PARAMS, ParameterError, build_options, descriptor, validate
 from owl_ros.pipeline import Inbox, Output, Pipeline, draw_debug
+from owl_ros.topics import GYRO_BIAS
 
 PROG = "owl_node"
 NODE_NAME = "owl"
@@ -154,6 +156,10 @@ class OwlNode(Node):
         self._heading_pub = self.create_publisher(
             Vector3Stamped, "owl/heading", reliable,
             event_callbacks=self._pub_events("owl/heading"),
+        )  # fmt: skip
+        self._bias_pub = self.create_publisher(
+            Vector3Stamped, GYRO_BIAS.name, reliable,
+            event_callbacks=self._pub_events(GYRO_BIAS.name),
         )  # fmt: skip
         self._diag_pub = self.create_publisher(
             DiagnosticArray, "/diagnostics", reliable,
@@ -378,6 +384,8 @@ class OwlNode(Node):
             self._heading_pub.publish(out.heading)
         if out.heading_cov is not None:
             self._heading_cov_pub.publish(out.heading_cov)
+        if out.gyro_bias is not None:
+            self._bias_pub.publish(out.gyro_bias)
         done = time.monotonic_ns()
         stamp_latency = (self.get_clock().now().nanoseconds - header_to_ns(out.header)) * 1e-9
         self._pipeline.record_latency((done - out.arrival_ns) * 1e-9, stamp_latency)
@@ -415,7 +423,8 @@ class OwlNode(Node):
         if self._worker.is_alive():
             self._worker.join(timeout=5.0)
         deadline = time.monotonic() + FLUSH_TIMEOUT_S
-        for pub in (self._points_pub, self._heading_pub, self._debug_pub, self._diag_pub):
+        pubs = (self._points_pub, self._heading_pub, self._bias_pub, self._debug_pub)
+        for pub in (*pubs, self._diag_pub):
             left = deadline - time.monotonic()
             if pub is not None and left > 0 and pub.get_subscription_count() > 0:
                 if not pub.wait_for_all_acked(Duration(nanoseconds=round(left * 1e9))):
@@ -430,7 +439,7 @@ def _help() -> str:
         f"usage: {PROG} [--ros-args -p NAME:=VALUE ... --params-file FILE -r FROM:=TO ...]",
         "",
         "OWL node 'owl': subscribes image (or image/compressed), camera_info, imu; publishes",
-        "owl/points, owl/heading, /diagnostics, owl/debug_image. Parameters:",
+        "owl/points, owl/heading, owl/gyro_bias, /diagnostics, owl/debug_image. Parameters:",
     ]
     for p in PARAMS:
         ro = ", read-only" if p.read_only else ""

@@ -48,12 +48,12 @@ import numpy as np
 import numpy.typing as npt
 
 from msg_adapters.camera_info import camera_info_to_model
-from msg_adapters.diagnostics import Level, StatusRecord
+from msg_adapters.diagnostics import StatusRecord
 from msg_adapters.heading import heading_to_msg, heading_to_twist_covariance
 from msg_adapters.image import compressed_to_frame, image_to_frame
-from msg_adapters.imu import imus_to_gyro
+from msg_adapters.imu import gyro_bias_to_msg, imus_to_gyro
 from msg_adapters.pointcloud import frame_result_to_cloud
-from msg_adapters.stamps import header_to_ns
+from msg_adapters.stamps import header_to_ns, make_header
 from owl_core.calib_check import CalibrationMonitor, MonitorVerdict
 from owl_core.camera import CameraModel
 from owl_core.engine import OwlEngine
@@ -62,6 +62,7 @@ from owl_core.geometry import quat_xyzw_to_matrix
 from owl_core.types import FrameResult, GyroSamples, PointFlag
 from owl_ros.debug_legend import draw_legend
 from owl_ros.params import NodeOptions
+from owl_ros.status import StatusInputs, build_status
 
 __all__ = ["Inbox", "Output", "Pipeline", "draw_debug"]
 
@@ -72,7 +73,6 @@ IMU_RING_S = 2.0
 #: speed messages kept.
 SPEED_KEEP = 400
 #: name prefix of the diagnostic statuses.
-DIAG_PREFIX = "owl"
 
 
 @dataclass(frozen=True)
@@ -87,6 +87,9 @@ class Output:
         header: the input image's std_msgs/Header.
         speed: m/s used to scale x y z to metres, or None (cloud in seconds).
         arrival_ns: when the image arrived, on the caller's clock, ns.
+        gyro_bias: geometry_msgs/Vector3Stamped for owl/gyro_bias: the engine's bias
+            estimate after this frame, rad/s, IMU frame (stamp = the image's), or None
+            when it is not finite.
     """
 
     result: FrameResult
@@ -97,6 +100,7 @@ class Output:
     speed: float | None
     arrival_ns: int
     heading_cov: Any | None = None  # TwistWithCovarianceStamped (owl/heading_with_covariance)
+    gyro_bias: Any = None  # Vector3Stamped (owl/gyro_bias)
 
 
 @dataclass
@@ -190,10 +194,6 @@ def _speed_of(msg: Any) -> tuple[int, float]:
     return header_to_ns(msg.header), math.sqrt(v.x * v.x + v.y * v.y + v.z * v.z)
 
 
-def _percentile(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values), q)) if values else math.nan
-
-
 class Pipeline:
     """Messages in, FrameResults and output messages out (see the module docstring).
 
@@ -212,6 +212,7 @@ class Pipeline:
         self._ring: collections.deque[tuple[int, tuple[float, float, float]]] = collections.deque()
         self._newest_imu_ns: int | None = None
         self._imu_arrival_ns: int | None = None
+        self._imu_frame_id = ""  # of the newest IMU message: the frame of owl/gyro_bias
         self._last_stamp: int | None = None
         self._speeds: collections.deque[tuple[int, float]] = collections.deque(maxlen=SPEED_KEEP)
         #: totals since start, by key (see diagnostics()).
@@ -353,6 +354,7 @@ class Pipeline:
         if not msgs:
             return
         self._imu_arrival_ns = arrival_ns
+        self._imu_frame_id = str(msgs[-1].header.frame_id)
         try:
             samples = imus_to_gyro(msgs)
         except ValueError as err:
@@ -647,7 +649,12 @@ class Pipeline:
         cov = None
         if heading is not None and np.isfinite(result.heading_sigma_rad):
             cov = heading_to_twist_covariance(result.heading, result.heading_sigma_rad, header)
-        return Output(result, cloud, heading, frame.image, header, speed, item.arrival_ns, cov)
+        bias = None
+        if np.isfinite(result.gyro_bias).all():
+            bias = gyro_bias_to_msg(result.gyro_bias, make_header(stamp, self._imu_frame_id))
+        return Output(
+            result, cloud, heading, frame.image, header, speed, item.arrival_ns, cov, bias
+        )
 
     def record_latency(self, latency_s: float, stamp_latency_s: float | None = None) -> None:
         """Record one frame's arrival -> publication latency (and image stamp ->
@@ -679,154 +686,36 @@ class Pipeline:
             reset_window: start a new rate window.
         """
         win = self._window
-        c = win.counts
-        span_s = (now_ns - win.start_ns) * 1e-9 if win.start_ns is not None else math.nan
-        span_ok = span_s > 0
-
-        def rate(key: str) -> float:
-            return c[key] / span_s if span_ok else math.nan
-
-        t = self.totals
-        imu_drops = {k: t[k] for k in ("imu_non_finite", "imu_duplicate", "imu_out_of_order")}
-        in_level = Level.OK
-        problems = []
-        if self._camera_error is not None:
-            in_level = Level.ERROR
-            problems.append(f"camera_info invalid: {self._camera_error}")
-        elif self._camera is None:
-            in_level = Level.ERROR
-            problems.append("no camera_info received")
-        if wrong_type:
-            in_level = Level.ERROR
-            problems.append(f"wrong message type: {wrong_type[0]}")
-        if c["images"] == 0:
-            in_level = max(in_level, Level.WARN)
-            problems.append("no images")
-        if c["imu"] == 0:
-            in_level = max(in_level, Level.WARN)
-            problems.append("no IMU")
-        if c["skipped_bad_image"]:
-            in_level = max(in_level, Level.WARN)
-            problems.append(f"bad image: {self._last_bad_image}")
-        if c["imu_non_finite"] + c["imu_duplicate"] + c["imu_out_of_order"] + c["imu_invalid"]:
-            in_level = max(in_level, Level.WARN)
-            problems.append(f"bad IMU samples dropped: {self._last_imu_problem}")
-        elif c["imu_gaps"]:
-            in_level = max(in_level, Level.WARN)
-            problems.append(self._last_imu_problem)
-        if c["qos_events"]:
-            in_level = max(in_level, Level.WARN)
-            problems.append(f"QoS: {self._qos_events[-1]}")
-        input_rec = StatusRecord.build(
-            f"{DIAG_PREFIX}: input",
-            in_level,
-            "; ".join(problems) if problems else "inputs OK",
-            {
-                "image_rate_hz": rate("images"),
-                "imu_rate_hz": rate("imu"),
-                "camera_info_rate_hz": rate("camera_info"),
-                "speed_rate_hz": rate("speed"),
-                "images_total": t["images"],
-                "imu_total": t["imu"],
-                "bad_images_total": t["skipped_bad_image"],
-                "last_bad_image": self._last_bad_image,
-                "camera_info_error": self._camera_error or "",
-                "imu_invalid_total": t["imu_invalid"],
-                "imu_gaps_total": t["imu_gaps"],
-                **{f"{k}_total": v for k, v in imu_drops.items()},
-                "last_imu_problem": self._last_imu_problem,
-                "qos_events_total": t["qos_events"],
-                "qos_last_event": self._qos_events[-1] if self._qos_events else "",
-                "wrong_type_publishers": "; ".join(wrong_type),
-            },
-        )
-        dropped = c["dropped_queue_full"]
-        proc_level = Level.OK
-        if c["processed"] == 0 or c["frames_with_points"] == 0:
-            proc_level = Level.WARN
-        if dropped or c["time_jumps"]:
-            proc_level = max(proc_level, Level.WARN)
-        if c["processed"] == 0:
-            if c["images"] == 0:
-                message = "no frames processed: no images received"
-            else:
-                why = self._last_empty_reason or "waiting for IMU/camera_info"
-                message = f"no frames processed: {why}"
-        elif c["frames_with_points"]:
-            message = (
-                f"{rate('processed'):.1f} frames/s, "
-                f"{float(np.mean(win.points)) if win.points else 0:.0f} points/frame"
-            )
-        else:
-            message = f"no points: {self._last_empty_reason or 'no frames processed'}"
-        if dropped:
-            message += f"; {dropped} frames dropped (queue full, newest wins)"
-        if c["time_jumps"]:
-            message += f"; time jump: {self._last_jump}"
-        result = self._last_result
-        proc_rec = StatusRecord.build(
-            f"{DIAG_PREFIX}: processing",
-            proc_level,
-            message,
-            {
-                "processed_rate_hz": rate("processed"),
-                "frames_processed_total": t["processed"],
-                "frames_with_points_total": t["frames_with_points"],
-                "frames_metric_total": t["frames_metric"],
-                "headings_total": t["headings"],
-                "points_per_frame_mean": float(np.mean(win.points)) if win.points else math.nan,
-                "processing_ms_mean": 1e3 * float(np.mean(win.process_s))
-                if win.process_s
-                else math.nan,
-                "processing_ms_max": 1e3 * max(win.process_s) if win.process_s else math.nan,
-                "frame_cycle_ms_max": 1e3 * max(win.cycle_s) if win.cycle_s else math.nan,
-                "latency_ms_p50": 1e3 * _percentile(win.latency_s, 50),
-                "latency_ms_p95": 1e3 * _percentile(win.latency_s, 95),
-                "stamp_to_publish_ms_p50": 1e3 * _percentile(win.stamp_latency_s, 50),
-                "stamp_to_publish_ms_p95": 1e3 * _percentile(win.stamp_latency_s, 95),
-                "dropped_queue_full_total": t["dropped_queue_full"],
-                "skipped_no_camera_info_total": t["skipped_no_camera_info"],
-                "skipped_bad_image_total": t["skipped_bad_image"],
-                "skipped_duplicate_stamp_total": t["skipped_duplicate_stamp"],
-                "skipped_engine_error_total": t["skipped_engine_error"],
-                "time_jumps_total": t["time_jumps"],
-                "last_time_jump": self._last_jump,
-                "last_empty_reason": self._last_empty_reason,
-                "heading_sigma_deg": math.degrees(result.heading_sigma_rad)
-                if result is not None
-                else math.nan,
-                "queue_size": self.options.queue_size,
-            },
-        )
         engine = self._engine
-        bias = engine.gyro_bias if engine is not None else np.zeros(3)
-        bias_sigma = engine.gyro_bias_sigma if engine is not None else np.full(3, math.nan)
-        gaps = c["frames_imu_not_covered"]
-        gyro_level = Level.WARN if gaps or (c["imu"] == 0 and c["images"]) else Level.OK
-        gyro_msg = f"bias [{bias[0]:.4g}, {bias[1]:.4g}, {bias[2]:.4g}] rad/s"
-        if gaps:
-            gyro_msg += f"; {gaps} frames without full IMU coverage"
-        verdict = self.calibration_verdict
-        if verdict is not None and verdict.disagrees:
-            gyro_level = Level.WARN
-            gyro_msg += f"; calibration: {verdict.message}"
-        gyro_rec = StatusRecord.build(
-            f"{DIAG_PREFIX}: gyro",
-            gyro_level,
-            gyro_msg,
-            {
-                "bias_x_rad_s": float(bias[0]),
-                "bias_y_rad_s": float(bias[1]),
-                "bias_z_rad_s": float(bias[2]),
-                "bias_sigma_rad_s": float(np.max(bias_sigma)),
-                "frames_imu_not_covered_total": t["frames_imu_not_covered"],
-                "require_gyro": self.options.engine.require_gyro,
-                **_calibration_values(verdict),
-            },
+        result = self._last_result
+        snapshot = StatusInputs(
+            span_s=(now_ns - win.start_ns) * 1e-9 if win.start_ns is not None else math.nan,
+            counts=win.counts,
+            totals=self.totals,
+            points=win.points,
+            process_s=win.process_s,
+            cycle_s=win.cycle_s,
+            latency_s=win.latency_s,
+            stamp_latency_s=win.stamp_latency_s,
+            camera_known=self._camera is not None,
+            camera_error=self._camera_error,
+            wrong_type=tuple(wrong_type),
+            last_bad_image=self._last_bad_image,
+            last_imu_problem=self._last_imu_problem,
+            last_empty_reason=self._last_empty_reason,
+            last_jump=self._last_jump,
+            qos_events=tuple(self._qos_events),
+            heading_sigma_rad=result.heading_sigma_rad if result is not None else math.nan,
+            gyro_bias=engine.gyro_bias if engine is not None else np.zeros(3),
+            gyro_bias_sigma=engine.gyro_bias_sigma if engine is not None else np.full(3, math.nan),
+            queue_size=self.options.queue_size,
+            require_gyro=self.options.engine.require_gyro,
+            calibration=self.calibration_verdict,
         )
+        records = build_status(snapshot)
         if reset_window:
             self._window = _Window(start_ns=now_ns)
-        return [input_rec, proc_rec, gyro_rec]
+        return records
 
     @property
     def calibration_verdict(self) -> MonitorVerdict | None:
@@ -836,22 +725,6 @@ class Pipeline:
     def start_window(self, now_ns: int) -> None:
         """Start the first diagnostics window at ``now_ns`` (caller's clock)."""
         self._window.start_ns = now_ns
-
-
-def _calibration_values(verdict: MonitorVerdict | None) -> dict[str, object]:
-    """Diagnostic values of the live calibration check (empty before its first verdict)."""
-    if verdict is None:
-        return {}
-    out: dict[str, object] = {
-        "calibration_ok": not verdict.disagrees,
-        "calibration_angle_deg": verdict.angle_deg,
-        "calibration_offset_s": verdict.offset_s,
-    }
-    if verdict.rotation_xyzw is not None:
-        out["calibration_rotation_xyzw"] = (
-            "[" + ", ".join(f"{v:.4f}" for v in verdict.rotation_xyzw) + "]"
-        )
-    return out
 
 
 def draw_debug(
@@ -869,8 +742,10 @@ def draw_debug(
     h, w = grey.shape
     n = result.num_points
     if n:
-        ros = np.clip(np.asarray(result.range_over_speed, dtype=np.float64), 0.5, 20.0)
-        level = np.log(ros / 0.5) / math.log(40.0)  # 0 near .. 1 far
+        range_over_speed = np.clip(
+            np.asarray(result.range_over_speed, dtype=np.float64), 0.5, 20.0
+        )
+        level = np.log(range_over_speed / 0.5) / math.log(40.0)  # 0 near .. 1 far
         lut = cv2.applyColorMap(
             np.round(255 * (1.0 - level)).astype(np.uint8).reshape(-1, 1), cv2.COLORMAP_JET
         ).reshape(-1, 3)

@@ -6,8 +6,9 @@ topics (and optionally a speed topic) in log-time order, feeds them to the same
 (so the result is deterministic: the same bag and options give the same bytes), and
 writes an MCAP rosbag2 with
 
-- ``/owl/points`` (sensor_msgs/PointCloud2) and ``/owl/heading`` (Vector3Stamped), logged
-  at the image stamp, headers = the image's header;
+- ``/owl/points`` (sensor_msgs/PointCloud2), ``/owl/heading`` and ``/owl/gyro_bias``
+  (Vector3Stamped), logged at the image stamp, headers = the image's header (the bias's
+  frame is the IMU's); the table is :mod:`owl_ros.topics`;
 - ``/diagnostics`` (DiagnosticArray) every ``diagnostics_period_s`` of bag time and at the
   end (these hold measured processing times, so only they differ between runs);
 - with ``--copy-inputs``, every input topic of the bag as recorded (one file for Foxglove).
@@ -41,7 +42,7 @@ import numpy.typing as npt
 
 from bags.cli import OneLineErrorParser
 from bags.errors import BagError, CorruptBagError
-from bags.io import BagReader, BagWriter, RawMessage, typestore
+from bags.io import BagReader, BagWriter, RawMessage, serialize
 from msg_adapters.diagnostics import records_to_msg
 from msg_adapters.msgtypes import message_class
 from msg_adapters.stamps import header_to_ns
@@ -58,42 +59,25 @@ from owl_ros.params import (
     to_values,
 )
 from owl_ros.pipeline import Output, Pipeline
+from owl_ros.topics import (
+    DIAGNOSTICS,
+    GYRO_BIAS,
+    HEADING,
+    HEADING_COV,
+    HEADING_MARKER,
+    POINTS,
+    RESULT_TOPICS,
+)
 
 PROG = "owl_process"
 
-POINTS_TOPIC = "/owl/points"
-HEADING_TOPIC = "/owl/heading"
-HEADING_COV_TOPIC = "/owl/heading_with_covariance"
-MARKER_TOPIC = "/owl/heading_marker"
-DIAGNOSTICS_TOPIC = "/diagnostics"
 TF_STATIC = "/tf_static"
-
-CLOUD = "sensor_msgs/msg/PointCloud2"
-VECTOR = "geometry_msgs/msg/Vector3Stamped"
-TWIST_COV = "geometry_msgs/msg/TwistWithCovarianceStamped"
-MARKER = "visualization_msgs/msg/Marker"
-DIAG = "diagnostic_msgs/msg/DiagnosticArray"
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 SPEED_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/TwistStamped")
 
 
 #: what to do with a bag that has no IMU topic.
 NO_IMU_HINT = "for a bag without IMU: --imu-topic '' -p require_gyro:=false"
-
-
-def canonical_cdr(msg: Any, msgtype: str) -> bytes:
-    """CDR bytes of an rclpy message with zeroed alignment padding.
-
-    ``rclpy.serialization.serialize_message`` leaves the CDR padding bytes uninitialised,
-    so identical messages could serialise differently; a round trip through the rosbags
-    typestore (which writes zero padding) makes the bytes a function of the content only.
-    """
-    from rclpy.serialization import serialize_message
-
-    store = typestore()
-    return bytes(
-        store.serialize_cdr(store.deserialize_cdr(serialize_message(msg), msgtype), msgtype)
-    )
 
 
 class ProcessError(Exception):
@@ -254,6 +238,137 @@ class _Progress:
         self.stream.flush()
 
 
+class _Run:
+    """One owl_process run: feeds the bag's messages to the pipeline in log-time order and
+    writes its outputs (the state process_bag's loop carries)."""
+
+    def __init__(
+        self,
+        bag: BagReader,
+        writer: BagWriter,
+        opts: ProcessOptions,
+        node_opts: NodeOptions,
+        roles: dict[str, str],
+        copy: list[str],
+    ) -> None:
+        from rclpy.serialization import deserialize_message
+
+        self.bag = bag
+        self.writer = writer
+        self.node_opts = node_opts
+        self.roles = roles
+        self.copy = set(copy)
+        self.pipeline = Pipeline(node_opts)
+        self.classes = {t: message_class(bag.topics[t].msgtype) for t in roles}
+        self.deserialize = deserialize_message
+        self.transforms: list[Any] = []
+        self.imu_frame: str | None = None
+        self.extrinsic_source = "option" if not opts.rotation_from_tf else "default"
+        self.rotation = opts.node.engine.camera_to_imu_rotation_xyzw
+        self.decided = not opts.rotation_from_tf
+        self.stamps: list[int] = []
+        self.headings: list[npt.NDArray[np.float64]] = []
+        self.sigmas: list[float] = []
+        self.reasons: Counter[str] = Counter()
+        self.undecodable: Counter[str] = Counter()
+        self.points = 0
+        self.frames = 0
+        self.period_ns = round(node_opts.diagnostics_period_s * 1e9)
+        self.next_diag: int | None = None
+        self.dense = DenseWriter(node_opts, writer, serialize) if node_opts.dense else None
+
+    def emit(self, outputs: list[Output]) -> None:
+        """Write the pipeline's outputs (points, heading, its marker and covariance, gyro
+        bias) at the image stamp."""
+        for o in outputs:
+            stamp = header_to_ns(o.header)
+            self.frames += 1
+            self.points += o.result.num_points
+            if self.dense is not None:
+                self.dense.write(o, self.pipeline.engine, self.pipeline.camera)
+            self.writer.write(POINTS.bag, max(stamp, 0), o.cloud)
+            if o.heading is not None and o.result.heading is not None:
+                self.writer.write(HEADING.bag, max(stamp, 0), o.heading)
+                marker = heading_marker(o.result.heading, o.header)
+                self.writer.write(HEADING_MARKER.bag, max(stamp, 0), marker)
+                self.stamps.append(stamp)
+                self.headings.append(np.asarray(o.result.heading, dtype=np.float64))
+                self.sigmas.append(float(o.result.heading_sigma_rad))
+            if o.heading_cov is not None:
+                self.writer.write(HEADING_COV.bag, max(stamp, 0), o.heading_cov)
+            if o.gyro_bias is not None:
+                self.writer.write(GYRO_BIAS.bag, max(stamp, 0), o.gyro_bias)
+            if not o.result.num_points:
+                for reason in o.result.reasons or ("no points",):
+                    self.reasons[reason.split(" (")[0].split(":")[0]] += 1
+
+    def diagnostics(self, now_ns: int) -> None:
+        """Write the pipeline's /diagnostics at bag time ``now_ns``."""
+        extra = [self.dense.stage.status()] if self.dense is not None else []
+        msg = records_to_msg(self.pipeline.diagnostics(now_ns) + extra, now_ns)
+        self.writer.write(DIAGNOSTICS.bag, max(now_ns, 0), msg)
+
+    def _camera_info(self, msg: Any) -> None:
+        if not self.decided:  # the first camera_info decides the extrinsic from /tf_static
+            found = tf_rotation(self.transforms, self.imu_frame, msg.header.frame_id)
+            if found is not None:
+                self.rotation, self.extrinsic_source = found, "tf_static"
+                self.pipeline.reconfigure(
+                    self.node_opts.with_values({"camera_to_imu_rotation_xyzw": found})
+                )
+            self.decided = True
+        self.pipeline.add_camera_info(msg)
+
+    def _dispatch(self, raw: RawMessage, role: str) -> None:
+        try:
+            msg = self.deserialize(raw.data, self.classes[raw.topic])
+        except Exception:  # a damaged message: skip it, count it
+            self.undecodable[raw.topic] += 1
+            return
+        if role == "imu":
+            if self.imu_frame is None:
+                self.imu_frame = msg.header.frame_id
+            self.pipeline.add_imu(msg, raw.log_time_ns)
+        elif role == "camera_info":
+            self._camera_info(msg)
+        elif role == "speed":
+            self.pipeline.add_speed(msg)
+        else:
+            self.pipeline.add_image(msg, raw.log_time_ns)
+
+    def handle(self, raw: RawMessage) -> None:
+        """One bag message: to the pipeline (or the tf buffer), copied when asked; then
+        the pipeline's ready outputs and, every diagnostics period, its diagnostics."""
+        now = raw.log_time_ns
+        role = self.roles.get(raw.topic)
+        if raw.topic == TF_STATIC and not self.decided:
+            self.transforms.extend(self.bag.deserialize(raw).transforms)
+        elif role is not None:
+            self._dispatch(raw, role)
+        if raw.topic in self.copy:
+            self.writer.write_raw(raw.topic, now, raw.data)
+        self.emit(self.pipeline.poll(now))
+        if self.next_diag is None:
+            self.next_diag = now + self.period_ns
+        elif now >= self.next_diag:
+            self.diagnostics(now)
+            self.next_diag = now + self.period_ns
+
+
+def _add_topics(
+    writer: BagWriter, node_opts: NodeOptions, infos: dict[str, Any], copy: list[str]
+) -> None:
+    """The result topics, the copied input topics and the options, in the output bag."""
+    for result_topic in RESULT_TOPICS:
+        writer.add_topic(result_topic.bag, result_topic.msgtype, result_topic.qos)
+    for topic in copy:
+        if topic not in {t.bag for t in RESULT_TOPICS}:
+            writer.add_topic(topic, infos[topic].msgtype, infos[topic].qos_kind)
+    writer.set_custom_data(
+        "owl_process", repr(sorted((k, v) for k, v in to_values(node_opts).items()))
+    )
+
+
 def process_bag(
     in_path: str | Path,
     out_path: str | Path,
@@ -290,159 +405,46 @@ def process_bag(
             read_topics.append(TF_STATIC)
         copy = sorted(infos) if opts.copy_inputs else []
         total = sum(infos[t].count for t in set(read_topics) | set(copy))
-        if callable(progress):
-            report = progress
-        else:
-            report = _Progress(progress, total)  # type: ignore[arg-type]
+        report = progress if callable(progress) else _Progress(progress, total)
         speed_source = "none"
         if opts.speed_topic:
             is_odom = infos[opts.speed_topic].msgtype == "nav_msgs/msg/Odometry"
             speed_source = "odometry" if is_odom else "twist"
         node_opts = replace(opts.node, speed_source=speed_source)
-        pipeline = Pipeline(node_opts)
-        classes = {t: message_class(infos[t].msgtype) for t in roles}
-        from rclpy.serialization import deserialize_message
-
-        transforms: list[Any] = []
-        imu_frame: str | None = None
-        extrinsic_source = "option" if not opts.rotation_from_tf else "default"
-        rotation = opts.node.engine.camera_to_imu_rotation_xyzw
-        decided = not opts.rotation_from_tf
-        stamps: list[int] = []
-        headings: list[npt.NDArray[np.float64]] = []
-        sigmas: list[float] = []
-        reasons: Counter[str] = Counter()
-        undecodable: Counter[str] = Counter()
-        points = 0
-        frames = 0
-        done = 0
-        period_ns = round(node_opts.diagnostics_period_s * 1e9)
-        next_diag: int | None = None
         damage: str | None = None
-
+        done = 0
         with BagWriter(out, overwrite=opts.overwrite, inputs=[in_path]) as writer:
-            writer.add_topic(POINTS_TOPIC, CLOUD, "reliable")
-            writer.add_topic(HEADING_TOPIC, VECTOR, "reliable")
-            writer.add_topic(HEADING_COV_TOPIC, TWIST_COV, "reliable")
-            writer.add_topic(MARKER_TOPIC, MARKER, "reliable")
-            writer.add_topic(DIAGNOSTICS_TOPIC, DIAG, "reliable")
-            ours = (
-                POINTS_TOPIC,
-                HEADING_TOPIC,
-                HEADING_COV_TOPIC,
-                MARKER_TOPIC,
-                DIAGNOSTICS_TOPIC,
-            )
-            for topic in copy:
-                if topic not in ours:
-                    writer.add_topic(topic, infos[topic].msgtype, infos[topic].qos_kind)
-            dense = DenseWriter(node_opts, writer, canonical_cdr) if node_opts.dense else None
-            writer.set_custom_data(
-                "owl_process", repr(sorted((k, v) for k, v in to_values(node_opts).items()))
-            )
-
-            def emit(outputs: list[Output]) -> None:
-                nonlocal points, frames
-                for o in outputs:
-                    stamp = header_to_ns(o.header)
-                    frames += 1
-                    points += o.result.num_points
-                    if dense is not None:
-                        dense.write(o, pipeline.engine, pipeline.camera)
-                    writer.write_raw(POINTS_TOPIC, max(stamp, 0), canonical_cdr(o.cloud, CLOUD))
-                    if o.heading is not None and o.result.heading is not None:
-                        writer.write_raw(
-                            HEADING_TOPIC, max(stamp, 0), canonical_cdr(o.heading, VECTOR)
-                        )
-                        marker = heading_marker(o.result.heading, o.header)
-                        writer.write_raw(
-                            MARKER_TOPIC, max(stamp, 0), canonical_cdr(marker, MARKER)
-                        )
-                    if o.heading_cov is not None:
-                        cov = canonical_cdr(o.heading_cov, TWIST_COV)
-                        writer.write_raw(HEADING_COV_TOPIC, max(stamp, 0), cov)
-                        stamps.append(stamp)
-                        headings.append(np.asarray(o.result.heading, dtype=np.float64))
-                        sigmas.append(float(o.result.heading_sigma_rad))
-                    if not o.result.num_points:
-                        for reason in o.result.reasons or ("no points",):
-                            reasons[reason.split(" (")[0].split(":")[0]] += 1
-
-            def diagnostics(now_ns: int) -> None:
-                extra = [dense.stage.status()] if dense is not None else []
-                msg = records_to_msg(pipeline.diagnostics(now_ns) + extra, now_ns)
-                writer.write_raw(DIAGNOSTICS_TOPIC, max(now_ns, 0), canonical_cdr(msg, DIAG))
-
-            def handle(raw: RawMessage) -> None:
-                nonlocal imu_frame, rotation, decided, extrinsic_source, next_diag
-                now = raw.log_time_ns
-                role = roles.get(raw.topic)
-                if raw.topic == TF_STATIC and not decided:
-                    transforms.extend(bag.deserialize(raw).transforms)
-                elif role is not None:
-                    try:
-                        msg = deserialize_message(raw.data, classes[raw.topic])
-                    except Exception:  # a damaged message: skip it, count it
-                        undecodable[raw.topic] += 1
-                        msg = None
-                    if msg is None:
-                        pass
-                    elif role == "imu":
-                        if imu_frame is None:
-                            imu_frame = msg.header.frame_id
-                        pipeline.add_imu(msg, now)
-                    elif role == "camera_info":
-                        if not decided:
-                            found = tf_rotation(transforms, imu_frame, msg.header.frame_id)
-                            if found is not None:
-                                rotation, extrinsic_source = found, "tf_static"
-                                pipeline.reconfigure(
-                                    node_opts.with_values({"camera_to_imu_rotation_xyzw": found})
-                                )
-                            decided = True
-                        pipeline.add_camera_info(msg)
-                    elif role == "speed":
-                        pipeline.add_speed(msg)
-                    else:
-                        pipeline.add_image(msg, now)
-                if raw.topic in copy:
-                    writer.write_raw(raw.topic, now, raw.data)
-                emit(pipeline.poll(now))
-                if next_diag is None:
-                    next_diag = now + period_ns
-                elif now >= next_diag:
-                    diagnostics(now)
-                    next_diag = now + period_ns
-
+            _add_topics(writer, node_opts, infos, copy)
+            run = _Run(bag, writer, opts, node_opts, roles, copy)
             last_ns = bag.start_ns
             try:
                 for raw in bag.messages(sorted(set(read_topics) | set(copy))):
-                    handle(raw)
+                    run.handle(raw)
                     last_ns = raw.log_time_ns
                     done += 1
-                    report(done, frames, False)
+                    report(done, run.frames, False)
             except CorruptBagError as err:
                 damage = str(err)
             if damage is None and bag.damage is not None:
                 damage = f"truncated or corrupt bag {bag.path}: {bag.damage}"
-            emit(pipeline.poll(last_ns, flush=True))
-            diagnostics(last_ns)
-            report(done, frames, True)
-            totals = dict(pipeline.totals)
-            totals.update({f"undecodable {t}": n for t, n in undecodable.items()})
+            run.emit(run.pipeline.poll(last_ns, flush=True))
+            run.diagnostics(last_ns)
+            report(done, run.frames, True)
+            totals = dict(run.pipeline.totals)
+            totals.update({f"undecodable {t}": n for t, n in run.undecodable.items()})
     return Summary(
         out_path=out,
         images=totals.get("images", 0),
-        frames_processed=frames,
+        frames_processed=run.frames,
         frames_with_points=totals.get("frames_with_points", 0),
-        points=points,
-        heading_stamps_ns=np.asarray(stamps, dtype=np.int64),
-        headings=np.asarray(headings, dtype=np.float64).reshape(-1, 3),
-        heading_sigma_rad=np.asarray(sigmas, dtype=np.float64),
-        extrinsic_source=extrinsic_source,
-        camera_to_imu_rotation_xyzw=tuple(float(v) for v in rotation),  # type: ignore[arg-type]
+        points=run.points,
+        heading_stamps_ns=np.asarray(run.stamps, dtype=np.int64),
+        headings=np.asarray(run.headings, dtype=np.float64).reshape(-1, 3),
+        heading_sigma_rad=np.asarray(run.sigmas, dtype=np.float64),
+        extrinsic_source=run.extrinsic_source,
+        camera_to_imu_rotation_xyzw=tuple(float(v) for v in run.rotation),  # type: ignore[arg-type]
         counts=totals,
-        reasons=dict(reasons),
+        reasons=dict(run.reasons),
         damage=damage,
         elapsed_s=time.monotonic() - t_start,
     )

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ast
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -114,6 +115,7 @@ def test_product_imports_no_tool_and_no_module_changes_the_environment() -> None
         """
         import importlib, os, pkgutil, sys
         import cv2  # OpenCV's own import sets LD_LIBRARY_PATH: not ours to check
+        import threadpoolctl  # its own import sets KMP_DUPLICATE_LIB_OK: not ours either
         before = dict(os.environ)
         import bags, msg_adapters, owl_core, owl_ros
         product = ["owl_ros.node", "owl_ros.pipeline", "owl_ros.params", "owl_ros.process",
@@ -138,6 +140,62 @@ def test_product_imports_no_tool_and_no_module_changes_the_environment() -> None
     )
     assert done.returncode == 0, done.stderr + done.stdout
     assert int(done.stdout.split()[0]) >= 30, done.stdout
+
+
+#: import name -> package.xml key, for third-party modules whose key differs from the name.
+ROSDEP_KEYS = {
+    "numpy": "python3-numpy",
+    "cv2": "python3-opencv",
+    "scipy": "python3-scipy",
+    "yaml": "python3-yaml",
+    "matplotlib": "python3-matplotlib",
+}
+#: pip-only (no rosdep key): these must be pinned in requirements/python.txt instead.
+PIP_ONLY = {"rosbags": "rosbags", "mcap": "mcap", "ray": "ray", "threadpoolctl": "threadpoolctl"}
+
+
+def test_every_imported_third_party_package_is_declared() -> None:
+    """Every top-level module imported by the package or its launch file is the standard
+    library, the project's own, a package.xml exec_depend, or pinned pip-only."""
+    own = {"owl_core", "msg_adapters", "owl_ros", "bags"}
+    found: dict[str, str] = {}
+    files = [*REPO.glob("launch/*.py")]
+    for pkg in own:
+        files += (REPO / pkg).rglob("*.py")
+    for path in files:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            else:
+                continue
+            for name in names:
+                root = name.split(".")[0]
+                if (
+                    root not in sys.stdlib_module_names
+                    and root not in own
+                    and root != "__future__"
+                ):
+                    found.setdefault(root, str(path.relative_to(REPO)))
+    declared = set(
+        re.findall(r"<exec_depend>([^<]+)</exec_depend>", (REPO / "package.xml").read_text())
+    )
+    pinned = {
+        line.split("==")[0].strip().lower()
+        for line in (REPO / "requirements" / "python.txt").read_text().splitlines()
+        if "==" in line and not line.startswith("#")
+    }
+    missing = []
+    for root, where in sorted(found.items()):
+        if root in PIP_ONLY:
+            ok = PIP_ONLY[root] in pinned
+        else:
+            ok = ROSDEP_KEYS.get(root, root) in declared
+        if not ok:
+            missing.append(f"{root} (imported in {where})")
+    assert not missing, f"undeclared third-party imports: {missing}"
+    assert {"numpy", "rclpy", "yaml", "matplotlib"} <= set(found)  # the scan sees imports
 
 
 @pytest.mark.slow

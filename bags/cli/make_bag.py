@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from geometry_msgs.msg import TwistStamped
 
 from bags.cli import OneLineErrorParser
 from bags.errors import BagError, ScenarioError
@@ -44,7 +45,12 @@ from bags.io import BagWriter, typestore
 from bags.sim import scenarios
 from bags.sim.scenarios import CAMERA_FRAME, IMU_FRAME, Frame, SimOptions, Simulation
 from bags.sim.sensors import ImuOptions
+from msg_adapters.camera_info import camera_model_to_info
+from msg_adapters.image import array_to_image
+from msg_adapters.imu import gyro_to_imus
+from msg_adapters.stamps import make_header
 from owl_core.errors import OwlError
+from owl_core.types import GyroSamples
 
 PROG = "owl_make_bag"
 #: A moderate barrel distortion for ``--distortion barrel`` (plumb_bob k1 k2 p1 p2 k3).
@@ -145,111 +151,60 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _stamp(ns: int) -> Any:
-    t = typestore().types["builtin_interfaces/msg/Time"]
-    return t(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
-
-
-def _header(ns: int, frame_id: str) -> Any:
-    return typestore().types["std_msgs/msg/Header"](stamp=_stamp(ns), frame_id=frame_id)
-
-
 def _image_msg(ns: int, array: np.ndarray, encoding: str) -> Any:
-    img = typestore().types["sensor_msgs/msg/Image"]
-    h, w = array.shape[:2]
-    data = np.ascontiguousarray(array)
     if encoding == "32FC1":
-        data = data.astype("<f4")
-    raw = data.view(np.uint8).reshape(-1)
-    return img(
-        header=_header(ns, CAMERA_FRAME),
-        height=h,
-        width=w,
-        encoding=encoding,
-        is_bigendian=0,
-        step=raw.size // h,
-        data=raw,
-    )
+        array = array.astype(np.float32)
+    return array_to_image(array, encoding, header=make_header(ns, CAMERA_FRAME))
 
 
 def camera_info_msg(ns: int, sim: Simulation) -> Any:
     """sensor_msgs/CameraInfo of the simulated camera (plumb_bob; D zeros if undistorted)."""
-    cam = sim.camera
-    info = typestore().types["sensor_msgs/msg/CameraInfo"]
-    roi = typestore().types["sensor_msgs/msg/RegionOfInterest"]
-    d = np.zeros(5) if cam.distortion_model == "none" else np.asarray(cam.D, dtype=np.float64)
-    k = np.asarray(cam.K, dtype=np.float64)
-    p = np.zeros((3, 4))
-    p[:, :3] = k
-    return info(
-        header=_header(ns, CAMERA_FRAME),
-        height=cam.height,
-        width=cam.width,
-        distortion_model="plumb_bob",
-        d=d.copy(),
-        k=k.reshape(-1).copy(),
-        r=np.eye(3).reshape(-1),
-        p=p.reshape(-1),
-        binning_x=0,
-        binning_y=0,
-        roi=roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
-    )
-
-
-def _vector3(v: Sequence[float]) -> Any:
-    return typestore().types["geometry_msgs/msg/Vector3"](
-        x=float(v[0]), y=float(v[1]), z=float(v[2])
-    )
+    return camera_model_to_info(sim.camera, header=make_header(ns, CAMERA_FRAME))
 
 
 def imu_msgs(sim: Simulation) -> Iterator[tuple[int, Any]]:
     """(stamp_ns, sensor_msgs/Imu) for every IMU sample (no orientation: covariance[0] = -1)."""
-    ts = typestore().types
     imu = sim.imu
     o = sim.imu_options
-    no_orientation = np.zeros(9)
-    no_orientation[0] = -1.0
-    gyro_cov = np.diag([o.gyro_noise**2] * 3).reshape(-1)
-    acc_cov = np.diag([o.accel_noise**2] * 3).reshape(-1)
-    quat = ts["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
-    for i, ns in enumerate(imu.stamp_ns.tolist()):
-        yield (
-            ns,
-            ts["sensor_msgs/msg/Imu"](
-                header=_header(ns, IMU_FRAME),
-                orientation=quat,
-                orientation_covariance=no_orientation,
-                angular_velocity=_vector3(imu.angular_velocity[i]),
-                angular_velocity_covariance=gyro_cov,
-                linear_acceleration=_vector3(imu.linear_acceleration[i]),
-                linear_acceleration_covariance=acc_cov,
-            ),
-        )
+    msgs = gyro_to_imus(
+        GyroSamples(imu.stamp_ns, imu.angular_velocity),
+        IMU_FRAME,
+        linear_acceleration=imu.linear_acceleration,
+        angular_velocity_covariance=np.diag([o.gyro_noise**2] * 3).reshape(-1),
+        linear_acceleration_covariance=np.diag([o.accel_noise**2] * 3).reshape(-1),
+    )
+    yield from zip(imu.stamp_ns.tolist(), msgs, strict=True)
 
 
 def tf_static_msg(ns: int, sim: Simulation) -> Any:
-    """The IMU -> camera optical frame transform (rotation = camera_to_imu_rotation_xyzw)."""
+    """The IMU -> camera optical frame transform (rotation = camera_to_imu_rotation_xyzw).
+
+    A rosbags message: tf2_msgs has no rclpy wheel on PyPI, so this one message is built
+    with the typestore (msg_adapters builds the others).
+    """
     ts = typestore().types
     q = sim.camera_to_imu_xyzw
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    stamp = ts["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
     tr = ts["geometry_msgs/msg/Transform"](
-        translation=_vector3((0.0, 0.0, 0.0)),
+        translation=ts["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
         rotation=ts["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
     )
     stamped = ts["geometry_msgs/msg/TransformStamped"](
-        header=_header(ns, IMU_FRAME), child_frame_id=CAMERA_FRAME, transform=tr
+        header=ts["std_msgs/msg/Header"](stamp=stamp, frame_id=IMU_FRAME),
+        child_frame_id=CAMERA_FRAME,
+        transform=tr,
     )
     return ts["tf2_msgs/msg/TFMessage"](transforms=[stamped])
 
 
 def twist_msg(frame: Frame) -> Any:
     """Ground-truth camera twist (camera optical frame) at the image stamp."""
-    ts = typestore().types
-    twist = ts["geometry_msgs/msg/Twist"](
-        linear=_vector3(frame.velocity), angular=_vector3(frame.omega)
-    )
-    return ts["geometry_msgs/msg/TwistStamped"](
-        header=_header(frame.stamp_ns, CAMERA_FRAME), twist=twist
-    )
+    msg = TwistStamped(header=make_header(frame.stamp_ns, CAMERA_FRAME))
+    t = msg.twist
+    t.linear.x, t.linear.y, t.linear.z = (float(v) for v in frame.velocity)
+    t.angular.x, t.angular.y, t.angular.z = (float(v) for v in frame.omega)
+    return msg
 
 
 def write_bag(

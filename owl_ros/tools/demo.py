@@ -36,6 +36,7 @@ from bags.errors import BagError
 from owl_core.errors import OwlError
 from owl_ros.tools.errors import DemoError, ToolError
 from owl_ros.tools.live import LiveNode
+from owl_ros.topics import RESULT_TOPICS
 
 PROG = "owl_demo"
 
@@ -195,9 +196,7 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
             "-m",
             "bags.cli.record",
             str(out_bag),
-            "/owl/points",
-            "/owl/heading",
-            "/diagnostics",
+            *(topic.bag for topic in RESULT_TOPICS),
             "--stamp",
             "header",
             "-q",
@@ -271,8 +270,10 @@ def _cube_figure(args: argparse.Namespace, fig_dir: Path, cache: Path, log: _Log
         oid = sim.frame(int(k)).object_id
         px = np.rint(res[k].pixels).astype(int)
         sels.append(oid[px[:, 1], px[:, 0]] == 10)  # the cube's object id
-        ros = frames.range_m[k][px[:, 1], px[:, 0]] / np.linalg.norm(frames.velocity[k])
-        truth_pts.append(sim.camera.pixel_to_bearing(res[k].pixels) * ros[:, None])
+        range_over_speed = frames.range_m[k][px[:, 1], px[:, 0]] / np.linalg.norm(
+            frames.velocity[k]
+        )
+        truth_pts.append(sim.camera.pixel_to_bearing(res[k].pixels) * range_over_speed[:, None])
     return plots.shape_constancy(
         [res[k] for k in ks],
         sels,

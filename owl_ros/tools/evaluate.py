@@ -16,7 +16,8 @@ baseline in ``owl_bench``, see :func:`score_frame` and :func:`summarize`):
 - **moving points**: precision and recall of the ``flags`` MOVING bit (4) against the
   moving mask (``/ground_truth/moving_mask``) sampled at the point.
 - **gyro-bias error** (rad/s, IMU frame): ``|b_est - b_true|``; the estimate comes from the
-  result's ``/diagnostics`` (``owl: gyro`` keys ``bias_x_rad_s`` ...), the truth from the
+  result's ``/owl/gyro_bias`` (geometry_msgs/Vector3Stamped, the estimate after each frame,
+  matched by image stamp), the truth from the
   truth bag's ``/ground_truth/gyro_bias`` (geometry_msgs/Vector3Stamped, IMU frame, at image
   stamps: ``owl_import`` writes it from EuRoC's ``b_w``), else from its ``owl_make_bag``
   options (``--gyro-bias``; metadata ``custom_data``). A bias random walk
@@ -28,9 +29,9 @@ and points only: r/|t| is reported as "not scored: no range ground truth" (summa
 ``range_scored`` false; the image size then comes from ``/camera/camera_info``).
 
 Result topics: ``/owl/points`` (sensor_msgs/PointCloud2 with at least ``u v
-range_over_speed flags``) and ``/owl/heading`` (geometry_msgs/Vector3Stamped), matched to
-the truth by header stamp (= image stamp). Text for people; ``--json`` prints one object
-``{"summary": {...}, "frames": [...]}``.
+range_over_speed flags``), ``/owl/heading`` and ``/owl/gyro_bias``
+(geometry_msgs/Vector3Stamped), matched to the truth by header stamp (= image stamp).
+Text for people; ``--json`` prints one object ``{"summary": {...}, "frames": [...]}``.
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ from bags.errors import BagError
 from bags.io import BagReader
 from owl_ros.tools import eval_checks
 from owl_ros.tools.errors import EvalError, ToolError
+from owl_ros.topics import DIAGNOSTICS, GYRO_BIAS, HEADING, POINTS, RESULT_TOPICS
 
 PROG = "owl_eval"
 FloatArray = npt.NDArray[np.float64]
@@ -70,10 +72,10 @@ TRUTH_TOPICS = {
 }
 CAMERA_INFO_TOPIC = "/camera/camera_info"
 NO_RANGE = "not scored: no range ground truth"
-POINTS_TOPICS = ("/owl/points", "owl/points")
-HEADING_TOPICS = ("/owl/heading", "owl/heading")
-DIAGNOSTICS_TOPIC = "/diagnostics"
-BIAS_KEYS = ("bias_x_rad_s", "bias_y_rad_s", "bias_z_rad_s")
+#: Result topics as owl_process writes them, then as a recording may name them.
+POINTS_TOPICS = (POINTS.bag, POINTS.name)
+HEADING_TOPICS = (HEADING.bag, HEADING.name)
+BIAS_TOPICS = (GYRO_BIAS.bag, GYRO_BIAS.name)
 
 
 # ------------------------------------------------------------------------ records
@@ -387,7 +389,8 @@ def read_estimates(
     heading_topic: str | None = None,
     notes: list[str] | None = None,
 ) -> dict[int, Estimate]:
-    """The result bag's frames by image stamp (ns): points, heading, latest bias estimate.
+    """The result bag's frames by image stamp (ns): points, heading, and the gyro-bias
+    estimate after that frame (``owl/gyro_bias``, matched by the image stamp).
 
     A truncated result bag (e.g. a recorder that was killed) is read up to the damage and
     the damage is appended to ``notes``.
@@ -398,6 +401,7 @@ def read_estimates(
     """
     from msg_adapters.diagnostics import msg_to_records
     from msg_adapters.heading import msg_to_heading
+    from msg_adapters.imu import msg_to_gyro_bias
     from msg_adapters.pointcloud import cloud_to_array
     from msg_adapters.stamps import header_to_ns
 
@@ -414,12 +418,13 @@ def read_estimates(
             if bag.damage:
                 msg += f"; it is damaged: {bag.damage}"
             raise EvalError(msg)
-        read = [t for t in (pts_t, head_t) if t is not None]
-        if DIAGNOSTICS_TOPIC in topics:
-            read.append(DIAGNOSTICS_TOPIC)
+        bias_t = _pick(topics, BIAS_TOPICS, None)
+        read = [t for t in (pts_t, head_t, bias_t) if t is not None]
+        if DIAGNOSTICS.bag in topics:  # its "owl: input" statuses say whether IMU arrived
+            read.append(DIAGNOSTICS.bag)
         clouds: dict[int, Any] = {}
         headings: dict[int, FloatArray] = {}
-        bias_track: list[tuple[int, FloatArray]] = []
+        biases: dict[int, FloatArray] = {}
         inputs: list[dict[str, str]] = []  # values of the "owl: input" statuses
         for raw in bag.messages(read):
             msg = _rclpy_msg(bag, raw)
@@ -431,18 +436,11 @@ def read_estimates(
                 clouds[header_to_ns(msg.header)] = arr
             elif raw.topic == head_t:
                 headings[header_to_ns(msg.header)] = msg_to_heading(msg)
+            elif raw.topic == bias_t:
+                biases[header_to_ns(msg.header)] = msg_to_gyro_bias(msg)
             else:
                 _, records = msg_to_records(msg)
-                for rec in records:
-                    values = rec.value_map()
-                    if rec.name.endswith(": input"):
-                        inputs.append(values)
-                    if all(k in values for k in BIAS_KEYS):
-                        try:
-                            b = np.array([float(values[k]) for k in BIAS_KEYS])
-                        except ValueError:
-                            continue
-                        bias_track.append((raw.log_time_ns, b))
+                inputs += [r.value_map() for r in records if r.name.endswith(": input")]
         if bag.damage and notes is not None:  # found on opening or while reading
             notes.append(f"result bag damaged, scored what was readable: {bag.damage}")
     empty = eval_checks.check_points(path, pts_t, [a.size for a in clouds.values()])
@@ -451,32 +449,27 @@ def read_estimates(
     if empty is not None and notes is not None:  # e.g. a still camera: headings, bias
         notes.append(empty.replace(": nothing to score", ": no r/|t| to score"))
     if eval_checks.imu_was_used(inputs) is False:  # the bias never moved: not an estimate
-        bias_track = []
+        biases = {}
         if notes is not None:
             notes.append("result had no IMU samples: gyro-bias error not scored")
     stamps = sorted(set(clouds) | set(headings))
-    bias_t = np.array([t for t, _ in bias_track], dtype=np.int64)
-    # Diagnostics are logged on the bag clock (owl_process) or on the recorder's wall clock
-    # (a live run): align them with the image stamps only when the two ranges overlap, else
-    # give the last estimate to the last frame.
-    aligned = bool(bias_t.size and stamps and bias_t[0] <= stamps[-1] and bias_t[-1] >= stamps[0])
     out: dict[int, Estimate] = {}
     for stamp in stamps:
         arr = clouds.get(stamp)
-        bias = None
-        if aligned:
-            k = int(np.searchsorted(bias_t, stamp, side="right")) - 1
-            bias = bias_track[k][1] if k >= 0 else None
-        elif bias_t.size and stamp == stamps[-1]:
-            bias = bias_track[-1][1]
+        bias = biases.get(stamp)  # owl/gyro_bias carries the image stamp
         if arr is not None:
             flags = arr["flags"] if "flags" in arr.dtype.names else np.zeros(arr.size)
             pixels = np.c_[arr["u"], arr["v"]].astype(np.float64)
-            ros = arr["range_over_speed"].astype(np.float64)
+            range_over_speed = arr["range_over_speed"].astype(np.float64)
         else:
-            pixels, ros, flags = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+            pixels, range_over_speed, flags = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
         out[stamp] = Estimate(
-            stamp, headings.get(stamp), pixels, ros, np.asarray(flags, dtype=np.uint8), bias
+            stamp,
+            headings.get(stamp),
+            pixels,
+            range_over_speed,
+            np.asarray(flags, dtype=np.uint8),
+            bias,
         )
     return out
 
@@ -627,43 +620,34 @@ def write_result_bag(
     results: Iterable[Any],
     frame_id: str = "camera_optical_frame",
     overwrite: bool = False,
+    imu_frame_id: str = "imu_link",
 ) -> int:
     """Write engine FrameResults as a result bag in owl_process's layout.
 
     ``/owl/points`` (every frame, possibly empty), ``/owl/heading`` (frames with a heading)
-    and ``/diagnostics`` (status ``owl: gyro`` with the bias keys), all stamped with the
-    image stamp. For tests, ``owl_bench`` and the demo; ``owl_process`` writes the same
-    topics from real bags. Returns the number of frames written.
+    and ``/owl/gyro_bias`` (every frame), all stamped with the image stamp; the topics of
+    :data:`owl_ros.topics.RESULT_TOPICS` (``/diagnostics`` stays empty). For tests,
+    ``owl_bench`` and the demo; ``owl_process`` writes the same topics from real bags.
+    Returns the number of frames written.
     """
-    from rclpy.serialization import serialize_message
-
     from bags.io import BagWriter
-    from msg_adapters.diagnostics import Level, StatusRecord, records_to_msg
     from msg_adapters.heading import heading_to_msg
+    from msg_adapters.imu import gyro_bias_to_msg
     from msg_adapters.pointcloud import frame_result_to_cloud
     from msg_adapters.stamps import make_header
 
     count = 0
     with BagWriter(path, overwrite=overwrite) as bag:
-        bag.add_topic(POINTS_TOPICS[0], "sensor_msgs/msg/PointCloud2", "reliable")
-        bag.add_topic(HEADING_TOPICS[0], "geometry_msgs/msg/Vector3Stamped", "reliable")
-        bag.add_topic(DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", "reliable")
+        for topic in RESULT_TOPICS:
+            bag.add_topic(topic.bag, topic.msgtype, topic.qos)
         for res in results:
             stamp = int(res.stamp_ns)
             header = make_header(stamp, frame_id)
-            bag.write_raw(
-                POINTS_TOPICS[0], stamp, serialize_message(frame_result_to_cloud(res, header))
-            )
+            bag.write(POINTS.bag, stamp, frame_result_to_cloud(res, header))
             if res.heading is not None:
-                msg = heading_to_msg(res.heading, header)
-                bag.write_raw(HEADING_TOPICS[0], stamp, serialize_message(msg))
-            bias = np.asarray(res.gyro_bias, dtype=np.float64)
-            rec = StatusRecord.build(
-                "owl: gyro", Level.OK, "bias", dict(zip(BIAS_KEYS, map(float, bias), strict=True))
-            )
-            bag.write_raw(
-                DIAGNOSTICS_TOPIC, stamp, serialize_message(records_to_msg([rec], stamp))
-            )
+                bag.write(HEADING.bag, stamp, heading_to_msg(res.heading, header))
+            bias_header = make_header(stamp, imu_frame_id)
+            bag.write(GYRO_BIAS.bag, stamp, gyro_bias_to_msg(res.gyro_bias, bias_header))
             count += 1
     return count
 

@@ -15,20 +15,19 @@ Each function takes arrays / owl_core FrameResults and writes one PNG, returning
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 import matplotlib
-
-matplotlib.use("Agg")
-
-import matplotlib.pyplot as plt
 import numpy as np
 import numpy.typing as npt
 from matplotlib.collections import LineCollection
-from matplotlib.colors import PowerNorm
+from matplotlib.colors import Normalize, PowerNorm
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle, Rectangle
 
 from owl_core.types import FrameResult, PointFlag
 
@@ -36,23 +35,36 @@ FloatArray = npt.NDArray[np.float64]
 DPI = 110
 COLORS = {"OWL": "#d62728", "cv-5pt": "#1f77b4", "cv-gyro": "#2ca02c"}
 
-plt.rcParams.update(
-    {
-        "figure.facecolor": "white",
-        "axes.grid": True,
-        "grid.alpha": 0.3,
-        "axes.spines.top": False,
-        "axes.spines.right": False,
-        "font.size": 10,
-    }
-)
+#: The figures' style, applied only while a figure is drawn (no process-wide rcParams).
+STYLE = {
+    "figure.facecolor": "white",
+    "axes.grid": True,
+    "grid.alpha": 0.3,
+    "axes.spines.top": False,
+    "axes.spines.right": False,
+    "font.size": 10,
+}
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+
+def _styled(draw: Callable[_P, _R]) -> Callable[_P, _R]:
+    """Run a figure function under :data:`STYLE` (matplotlib.rc_context)."""
+
+    @functools.wraps(draw)
+    def wrapper(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+        with matplotlib.rc_context(STYLE):
+            return draw(*args, **kwargs)
+
+    return wrapper
 
 
 def _save(fig: Any, path: str | Path) -> Path:
+    """Write ``fig`` (a matplotlib Figure without pyplot: no backend is chosen or changed)."""
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=DPI, bbox_inches="tight")
-    plt.close(fig)
     return out
 
 
@@ -79,6 +91,7 @@ def _static(res: FrameResult) -> npt.NDArray[np.bool_]:
     return (np.asarray(res.flags) & int(PointFlag.MOVING)) == 0
 
 
+@_styled
 def shape_constancy(
     results: Sequence[FrameResult],
     selections: Sequence[npt.NDArray[np.bool_]],
@@ -99,10 +112,10 @@ def shape_constancy(
             seconds) of the same points, drawn in grey under the estimates.
     """
     k = len(results)
-    cmap = plt.get_cmap("viridis")
+    cmap = matplotlib.colormaps.get_cmap("viridis")
     # up to 0.8 of viridis: its light yellow end is unreadable as title text on white
     colors = [cmap(0.8 * i / max(k - 1, 1)) for i in range(k)]
-    fig = plt.figure(figsize=(15, 8.6))
+    fig = Figure(figsize=(15, 8.6))
     grid = fig.add_gridspec(2, 12 * k, height_ratios=[1, 2.1])
     allpx = np.concatenate([r.pixels[sel] for r, sel in zip(results, selections, strict=True)])
     if allpx.size:
@@ -192,6 +205,7 @@ def _signed_omega(res: FrameResult) -> FloatArray:
     return np.linalg.norm(res.omega, axis=1) * side
 
 
+@_styled
 def complex_domain(
     results: Sequence[FrameResult], path: str | Path, max_tracks: int = 80, title: str = ""
 ) -> Path:
@@ -215,7 +229,8 @@ def complex_domain(
     step = max(1, len(long) // max_tracks)
     chosen = long[::step][:max_tracks]
     t_end = max((res.stamp_ns - t0) * 1e-9 for res in results) or 1.0
-    fig, ax = plt.subplots(figsize=(9, 8))
+    fig = Figure(figsize=(9, 8))
+    ax = fig.subplots()
     last = results[-1]
     ax.scatter(
         _signed_omega(last),
@@ -230,10 +245,14 @@ def complex_domain(
         pts = tr[:, 1:]
         segs += [pts[i : i + 2] for i in range(len(pts) - 1)]
         cols += list(tr[1:, 0])
-        ax.plot(*pts[-1], "o", ms=3.5, color=plt.get_cmap("plasma")(tr[-1, 0] / t_end), zorder=3)
-    lc = LineCollection(
-        segs, cmap="plasma", norm=plt.Normalize(0, t_end), linewidths=1.6, zorder=2
-    )
+        ax.plot(
+            *pts[-1],
+            "o",
+            ms=3.5,
+            color=matplotlib.colormaps.get_cmap("plasma")(tr[-1, 0] / t_end),
+            zorder=3,
+        )
+    lc = LineCollection(segs, cmap="plasma", norm=Normalize(0, t_end), linewidths=1.6, zorder=2)
     lc.set_array(np.asarray(cols))
     ax.add_collection(lc)
     fig.colorbar(lc, ax=ax, label="time (s)", shrink=0.6)
@@ -241,7 +260,7 @@ def complex_domain(
     ys = np.concatenate([tr[:, 2] for tr in chosen]) if chosen else last.looming
     lim = float(np.nanpercentile(np.hypot(xs, ys), 98)) * 1.15 if xs.size else 1.0
     for rr in _nice_levels(lim):
-        circ = plt.Circle((0, 0), 1 / rr, fill=False, ls=":", color="0.5", lw=0.8)
+        circ = Circle((0, 0), 1 / rr, fill=False, ls=":", color="0.5", lw=0.8)
         ax.add_patch(circ)
         a = math.radians(-75)
         ax.annotate(
@@ -293,12 +312,14 @@ def _nice_levels(lim: float) -> list[float]:
     return out
 
 
+@_styled
 def heading_error(
     times_s: npt.ArrayLike, series: Mapping[str, npt.ArrayLike], path: str | Path, title: str = ""
 ) -> Path:
     """Heading error (degrees) over time per method; NaN = no heading in that frame."""
     t = np.asarray(times_s, dtype=np.float64)
-    fig, ax = plt.subplots(figsize=(10, 4.2))
+    fig = Figure(figsize=(10, 4.2))
+    ax = fig.subplots()
     for name, values in series.items():
         v = np.asarray(values, dtype=np.float64)
         med = np.nanmedian(v) if np.isfinite(v).any() else math.nan
@@ -319,12 +340,14 @@ def heading_error(
     return _save(fig, path)
 
 
+@_styled
 def range_scatter(
     pairs: Mapping[str, tuple[npt.ArrayLike, npt.ArrayLike]], path: str | Path, title: str = ""
 ) -> Path:
     """Estimated vs true r/|t| (s) per method (log-log) with the 10 % band."""
     n = len(pairs)
-    fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 4.6), squeeze=False)
+    fig = Figure(figsize=(4.6 * n, 4.6))
+    axes = fig.subplots(1, n, squeeze=False)
     allv = np.concatenate(
         [np.asarray(v, dtype=np.float64) for tr, es in pairs.values() for v in (tr, es)]
     )
@@ -358,6 +381,7 @@ def range_scatter(
     return _save(fig, path)
 
 
+@_styled
 def scaled_cloud(res: FrameResult, path: str | Path, title: str = "") -> Path:
     """One frame's scaled 3D points (seconds) from two viewpoints, coloured by L (1/s).
 
@@ -374,7 +398,7 @@ def scaled_cloud(res: FrameResult, path: str | Path, title: str = "") -> Path:
         inside = np.all((pts >= lo) & (pts <= hi), axis=1)
     else:
         lo, hi, inside = np.zeros(3), np.ones(3), np.zeros(0, dtype=bool)
-    fig = plt.figure(figsize=(11, 6.2), layout="constrained")
+    fig = Figure(figsize=(11, 6.2), layout="constrained")
     grid = fig.add_gridspec(1, 2, width_ratios=[2.2, 1])
     ax = fig.add_subplot(grid[0, 0], projection="3d")
     p, c = pts[inside], lv[inside]
@@ -410,6 +434,7 @@ def scaled_cloud(res: FrameResult, path: str | Path, title: str = "") -> Path:
     return _save(fig, path)
 
 
+@_styled
 def fields(
     image: npt.NDArray[np.uint8], res: FrameResult, path: str | Path, camera: Any = None
 ) -> Path:
@@ -422,7 +447,8 @@ def fields(
     px = res.pixels[keep]
     lv = res.looming[keep]
     om = res.omega[keep]
-    fig, axes = plt.subplots(1, 2, figsize=(15, 5.2), layout="constrained")
+    fig = Figure(figsize=(15, 5.2), layout="constrained")
+    axes = fig.subplots(1, 2)
     axes[0].imshow(image, cmap="gray", alpha=0.55)
     lscale = _l_scale(lv)
     s0 = axes[0].scatter(*px.T, c=lv, s=16, edgecolors="none", **lscale)
@@ -456,7 +482,7 @@ def fields(
     )  # fmt: skip
     key_box = {"facecolor": "white", "alpha": 0.8, "edgecolor": "none"}
     axes[1].add_patch(
-        plt.Rectangle((0.0, 0.0), 0.4, 0.09, transform=axes[1].transAxes, zorder=4, **key_box)
+        Rectangle((0.0, 0.0), 0.4, 0.09, transform=axes[1].transAxes, zorder=4, **key_box)
     )
     axes[1].set_title("perceived rotation omega = (e x t)/r, x-y part")
     foe = None

@@ -1,14 +1,23 @@
-"""Imu (REP 145) <-> GyroSamples: exact stamps, batching, absent angular velocity."""
+"""Imu (REP 145) <-> GyroSamples: exact stamps, batching, absent angular velocity; the
+gyro-bias Vector3Stamped."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from geometry_msgs.msg import Vector3Stamped
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Imu
 
 from msg_adapters.errors import FieldError, LayoutError
-from msg_adapters.imu import gyro_to_imus, imu_to_gyro, imus_to_gyro
+from msg_adapters.imu import (
+    gyro_bias_to_msg,
+    gyro_to_imus,
+    imu_to_gyro,
+    imus_to_gyro,
+    msg_to_gyro_bias,
+)
+from msg_adapters.stamps import make_header
 from owl_core.types import GyroSamples
 
 
@@ -60,3 +69,43 @@ def test_bad_samples_shape():
     bad = GyroSamples(stamp_ns=np.zeros(3, np.int64), angular_velocity=np.zeros((2, 3)))
     with pytest.raises(LayoutError, match=r"got \(3,\) and \(2, 3\)"):
         gyro_to_imus(bad, "imu")
+
+
+def test_linear_acceleration_and_covariances_through_the_wire():
+    samples = _samples(4)
+    acc = np.random.default_rng(2).normal(0, 9.8, (4, 3))
+    gyro_cov = np.diag([1e-6, 2e-6, 3e-6]).reshape(-1)
+    acc_cov = np.diag([0.01, 0.02, 0.03]).reshape(-1)
+    msgs = gyro_to_imus(
+        samples,
+        "imu",
+        linear_acceleration=acc,
+        angular_velocity_covariance=gyro_cov,
+        linear_acceleration_covariance=acc_cov,
+    )
+    msgs = [deserialize_message(serialize_message(m), Imu) for m in msgs]
+    got = np.array([[m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z]
+                    for m in msgs])  # fmt: skip
+    np.testing.assert_array_equal(got, acc)
+    np.testing.assert_array_equal(np.asarray(msgs[0].angular_velocity_covariance), gyro_cov)
+    np.testing.assert_array_equal(np.asarray(msgs[3].linear_acceleration_covariance), acc_cov)
+    assert msgs[0].orientation_covariance[0] == -1.0
+    np.testing.assert_array_equal(imus_to_gyro(msgs).angular_velocity, samples.angular_velocity)
+    with pytest.raises(LayoutError, match=r"linear_acceleration must have shape \(4, 3\)"):
+        gyro_to_imus(samples, "imu", linear_acceleration=acc[:2])
+    with pytest.raises(LayoutError, match="angular_velocity_covariance must have 9 elements"):
+        gyro_to_imus(samples, "imu", angular_velocity_covariance=np.zeros(3))
+
+
+def test_gyro_bias_round_trip_exact_and_non_finite_rejected():
+    bias = np.array([0.004, -0.002, 1e-9])
+    msg = gyro_bias_to_msg(bias, make_header(1_700_000_000_000_000_001, "imu_link"))
+    back = deserialize_message(serialize_message(msg), Vector3Stamped)
+    np.testing.assert_array_equal(msg_to_gyro_bias(back), bias)
+    assert back.header.frame_id == "imu_link"
+    assert back.header.stamp.nanosec == 1
+    np.testing.assert_array_equal(msg_to_gyro_bias(gyro_bias_to_msg(np.zeros(3), msg.header)), 0)
+    with pytest.raises(FieldError, match="gyro bias must be finite"):
+        gyro_bias_to_msg([0.0, float("nan"), 0.0], msg.header)
+    with pytest.raises(FieldError, match=r"shape \(3,\)"):
+        gyro_bias_to_msg([0.0, 0.0], msg.header)

@@ -260,7 +260,7 @@ def test_history_bearings_reused_equal_fresh_undistortion(
         engine.add_gyro(sim.gyro_samples())
     points = 0
     for frame in frames:
-        fresh._bearing_cache = None
+        fresh._state.bearing_cache = None
         a = cached.process(ImageFrame(frame.stamp_ns, frame.image))
         b = fresh.process(ImageFrame(frame.stamp_ns, frame.image))
         np.testing.assert_array_equal(a.ids, b.ids)

@@ -63,6 +63,7 @@ def test_sparse_outputs_unchanged_and_dense_topics_written(outputs: tuple[Any, A
         "/owl/heading",
         "/owl/heading_with_covariance",
         "/owl/heading_marker",
+        "/owl/gyro_bias",
         "/diagnostics",
     }
     assert set(on) == set(off) | {"/" + t for t in TOPICS}

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import rgb_to_hsv
 
 from owl_core.types import FrameResult
@@ -30,9 +31,16 @@ def _result(n: int = 300, seed: int = 0, stamp: int = 0) -> FrameResult:
 
 @pytest.fixture
 def figures(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
-    """The figures the plot functions build, kept open instead of saved."""
+    """The figures the plot functions build, kept open instead of saved (on an Agg canvas:
+    plots builds pyplot-free Figures, whose base canvas has no renderer)."""
     kept: list[Any] = []
-    monkeypatch.setattr(plots, "_save", lambda fig, path: kept.append(fig) or path)
+
+    def keep(fig: Any, path: Any) -> Any:
+        FigureCanvasAgg(fig)
+        kept.append(fig)
+        return path
+
+    monkeypatch.setattr(plots, "_save", keep)
     return kept
 
 

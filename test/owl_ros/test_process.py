@@ -77,7 +77,7 @@ def test_output_readable_with_contract_fields_and_headers(
     data = read(out)
     assert set(data) == {
         "/owl/points", "/owl/heading", "/owl/heading_with_covariance", "/owl/heading_marker",
-        "/diagnostics",
+        "/owl/gyro_bias", "/diagnostics",
     }  # fmt: skip
     clouds = data["/owl/points"]
     # one cloud per frame, header = the image header, logged at the image stamp
@@ -123,9 +123,19 @@ def test_output_readable_with_contract_fields_and_headers(
             np.array([tip.x, tip.y, tip.z]) / np.linalg.norm([tip.x, tip.y, tip.z]),
             [h.vector.x, h.vector.y, h.vector.z], atol=1e-12,
         )  # fmt: skip
+    # owl/gyro_bias: one per processed frame, image stamp, IMU frame; the last one is the
+    # estimate the final diagnostics report
+    biases = data["/owl/gyro_bias"]
+    assert [header_to_ns(m.header) for _, _, m in biases] == stamps
+    assert {m.header.frame_id for _, _, m in biases} == {"imu_link"}
     _, records = msg_to_records(data["/diagnostics"][-1][2])
     names = [r.name for r in records]
     assert names == ["owl: input", "owl: processing", "owl: gyro"]
+    gyro = records[2].value_map()
+    last = biases[-1][2].vector
+    assert [last.x, last.y, last.z] == pytest.approx(
+        [float(gyro[f"bias_{a}_rad_s"]) for a in "xyz"], rel=1e-5, abs=1e-9
+    )
     proc = records[1].value_map()
     assert proc["frames_processed_total"] == str(len(stamps))
     assert summary.extrinsic_source == "tf_static"
