@@ -55,8 +55,9 @@ from bags.cli import OneLineErrorParser, user_cache_dir
 from bags.errors import BagError
 from bags.io import BagReader, RawMessage
 from bags.sim import scenarios
+from bags.sim.render import apply_gain, sensor_noise
 from bags.sim.scenarios import SimOptions, Simulation
-from bags.sim.sensors import ImuOptions
+from bags.sim.sensors import IMU_MODELS, ImuOptions
 from owl_core.baseline import BaselineFrame, BaselineOptions, TwoViewBaseline
 from owl_core.camera import CameraModel
 from owl_core.engine import EngineOptions, OwlEngine
@@ -80,21 +81,40 @@ BIAS = 0.01
 STATIC = ("cube", "scaled", "accel", "turn", "street", "receding")
 
 
+#: Image effects of real cameras a case can add (:func:`effect_frames`).
+EFFECTS = ("blur", "noise", "gain", "jpeg", "jitter", "drop")
+
+
 @dataclass(frozen=True)
 class Case:
     """One benchmark row: a scenario and a gyro-bias magnitude (rad/s), or a bag
-    (``bag``: path of a bag in the standard layout; ``scenario`` is then "bag")."""
+    (``bag``: path of a bag in the standard layout; ``scenario`` is then "bag").
+
+    Attributes:
+        scenario: scenario name. bias: constant gyro bias magnitude, rad/s.
+        bag: path of a bag ("" = synthetic).
+        rate_hz: camera rate, Hz (0 = the profile's).
+        seconds: duration, s (0 = the profile's).
+        imu: IMU model name of :data:`bags.sim.sensors.IMU_MODELS` ("" = the default IMU).
+        effects: image effects of :data:`EFFECTS`.
+    """
 
     scenario: str
     bias: float = 0.0
     bag: str = ""
+    rate_hz: float = 0.0
+    seconds: float = 0.0
+    imu: str = ""
+    effects: tuple[str, ...] = ()
 
     @property
     def label(self) -> str:
-        """e.g. "street", "street+bias" or "bag:NAME" (a recorded or imported bag)."""
+        """e.g. "street", "street+bias", "car@10hz+mems200+blur" or "bag:NAME"."""
         if self.bag:
             return "bag:" + Path(self.bag).name
-        return self.scenario + ("+bias" if self.bias else "")
+        out = self.scenario + (f"@{self.rate_hz:g}hz" if self.rate_hz else "")
+        out += "".join(f"+{x}" for x in (self.imu, *self.effects) if x)
+        return out + ("+bias" if self.bias else "")
 
 
 @dataclass(frozen=True)
@@ -114,6 +134,22 @@ class Profile:
     clock: str = "cpu"
 
 
+#: Duration of the ``car`` cases, s (its speed and yaw profile repeats every 8 s).
+CAR_SECONDS = 8.0
+#: Cases of real cameras and IMUs: rates of 10 to 60 Hz, a car at 10 Hz, a slider whose
+#: rotation starts and stops, a slow start, IMU models of real parts, image effects.
+REALISTIC = (
+    Case("street", rate_hz=10.0),
+    Case("street", rate_hz=20.0),
+    Case("street", rate_hz=60.0),
+    Case("car", rate_hz=10.0, seconds=CAR_SECONDS),
+    Case("car", 0.0, "", 10.0, CAR_SECONDS, "mems200", ("blur", "noise", "gain", "jpeg")),
+    Case("sideways", rate_hz=26.0, imu="adis16448"),
+    Case("slow_start"),
+    Case("street", imu="adis16448", effects=("jitter", "drop")),
+    Case("street", imu="mems400", effects=("blur", "noise", "gain", "jpeg")),
+    Case("turn", imu="mems100"),
+)
 FULL = Profile(
     "full",
     640,
@@ -121,7 +157,8 @@ FULL = Profile(
     3.0,
     1000,
     tuple(Case(s) for s in (*STATIC, "mover", "rotation_only"))
-    + tuple(Case(s, BIAS) for s in ("street", "turn", "cube", "mover")),
+    + tuple(Case(s, BIAS) for s in ("street", "turn", "cube", "mover"))
+    + REALISTIC,
 )
 QUICK = Profile(
     "quick",
@@ -129,7 +166,13 @@ QUICK = Profile(
     240,
     1.0,
     300,
-    (Case("street"), Case("street", BIAS), Case("cube"), Case("mover")),
+    (
+        Case("street"),
+        Case("street", BIAS),
+        Case("cube"),
+        Case("mover"),
+        Case("car", 0.0, "", 10.0, CAR_SECONDS, "mems200", ("noise", "jpeg")),
+    ),
 )
 
 
@@ -154,17 +197,88 @@ class Frames:
 
 def _sim(case: Case, profile: Profile) -> Simulation:
     b = case.bias / math.sqrt(3.0)
+    imu = IMU_MODELS[case.imu] if case.imu else ImuOptions()
     opts = SimOptions(
-        seconds=profile.seconds,
-        rate_hz=profile.rate_hz,
+        seconds=case.seconds or profile.seconds,
+        rate_hz=case.rate_hz or profile.rate_hz,
         width=profile.width,
         height=profile.height,
-        imu=ImuOptions(gyro_bias=(b, b, b)),
+        imu=replace(imu, gyro_bias=(b, b, b)),
     )
     return scenarios.get(case.scenario).simulate(opts)
 
 
-def _cache_key(sim: Simulation) -> str:
+def effect_times(case: Case, sim: Simulation) -> npt.NDArray[np.float64]:
+    """Scenario times (s) of the frames a case's camera delivers: the regular grid, moved
+    by up to +-25 % of the period ("jitter": uneven intervals), with 10 % of the frames
+    (and never the first three) left out ("drop"). Seeded: the same every run."""
+    n = sim.options.num_frames
+    period = 1.0 / sim.options.rate_hz
+    t = np.arange(n) * period
+    rng = np.random.default_rng(1414)
+    if "jitter" in case.effects:
+        t[1:] += rng.uniform(-0.25, 0.25, n - 1) * period
+    if "drop" in case.effects:
+        keep = rng.random(n) >= 0.1
+        keep[:3] = True
+        t = t[keep]
+    return t
+
+
+#: Exposure time of the "blur" effect, s (a daylight exposure of a machine-vision camera).
+EXPOSURE_S = 0.008
+
+
+def effect_frames(
+    case: Case, sim: Simulation, log: Callable[[str], None] = lambda s: None
+) -> Frames:
+    """Frames of a case with image effects (:data:`EFFECTS`), rendered in memory.
+
+    blur: each image the mean of 3 renders over an exposure of :data:`EXPOSURE_S`
+    (:meth:`bags.sim.scenarios.Simulation.frame_at`); noise: read + shot sensor noise
+    (:func:`bags.sim.render.sensor_noise`); gain: a seeded auto-gain walk (x0.75 to x1.3,
+    steps up to 6 % per frame, :func:`bags.sim.render.apply_gain`); jpeg: each image
+    through a sensor_msgs/CompressedImage at JPEG quality 80 (the message adapters'
+    encoder and decoder); jitter / drop: :func:`effect_times`. Truth at each frame's time.
+    """
+    from msg_adapters.image import array_to_compressed, compressed_to_frame
+
+    times = effect_times(case, sim)
+    n = times.size
+    w, h = sim.options.width, sim.options.height
+    images = np.zeros((n, h, w), dtype=np.uint8)
+    ranges = np.zeros((n, h, w), dtype=np.float32)
+    masks = np.zeros((n, h, w), dtype=bool)
+    vel = np.zeros((n, 3))
+    stamps = np.zeros(n, dtype=np.int64)
+    rng = np.random.default_rng(2828)
+    gain = 1.0
+    exposure = EXPOSURE_S if "blur" in case.effects else 0.0
+    t0 = time.monotonic()
+    for k, t in enumerate(times):
+        f = sim.frame_at(float(t), k, exposure)
+        img = f.image if f.image.ndim == 2 else f.image.mean(axis=2).astype(np.uint8)
+        if "gain" in case.effects:
+            gain = float(np.clip(gain * math.exp(rng.uniform(-0.06, 0.06)), 0.75, 1.3))
+            img = apply_gain(img, gain)
+        if "noise" in case.effects:
+            img = sensor_noise(img, rng)
+        if "jpeg" in case.effects:
+            img = compressed_to_frame(array_to_compressed(img, "mono8", "jpeg", None, 80)).image
+        images[k], ranges[k], masks[k], vel[k], stamps[k] = (
+            img,
+            f.range_m,
+            f.mask,
+            f.velocity,
+            f.stamp_ns,
+        )
+        if (k + 1) % max(1, n // 4) == 0:
+            log(f"  rendered {k + 1}/{n} frames of {case.label} ({time.monotonic() - t0:.0f} s)")
+    has_mask = bool(sim.scenario.movers)
+    return Frames(stamps, images, ranges, masks if has_mask else None, vel)
+
+
+def _cache_key(sim: Simulation, effects: tuple[str, ...] = ()) -> str:
     o = sim.options
     src = Path(scenarios.__file__).parent
     digest = hashlib.sha1()
@@ -181,15 +295,21 @@ def _cache_key(sim: Simulation) -> str:
         f"ss{o.supersample}",
         f"sc{sim.scale:g}",
         digest.hexdigest()[:10],
+        *effects,
     ]
     return "_".join(parts)
 
 
 def load_frames(
-    sim: Simulation, cache_dir: Path | None, log: Callable[[str], None] = lambda s: None
+    sim: Simulation,
+    cache_dir: Path | None,
+    log: Callable[[str], None] = lambda s: None,
+    case: Case | None = None,
 ) -> Frames:
-    """The simulation's frames, from ``cache_dir`` when cached there (else rendered, stored)."""
-    path = cache_dir / f"{_cache_key(sim)}.npz" if cache_dir is not None else None
+    """The simulation's frames, from ``cache_dir`` when cached there (else rendered, stored);
+    with the image effects of ``case`` when it has any (:func:`effect_frames`)."""
+    effects = case.effects if case is not None else ()
+    path = cache_dir / f"{_cache_key(sim, effects)}.npz" if cache_dir is not None else None
     if path is not None and path.is_file():
         try:
             with np.load(path) as z:
@@ -199,6 +319,11 @@ def load_frames(
                 )
         except (OSError, ValueError, KeyError):
             log(f"cache {path} unreadable: rendering again")
+    if case is not None and case.effects:
+        frames = effect_frames(case, sim, log)
+        if path is not None:
+            _store(path, frames)
+        return frames
     n = sim.options.num_frames
     w, h = sim.options.width, sim.options.height
     images = np.zeros((n, h, w), dtype=np.uint8)
@@ -216,19 +341,24 @@ def load_frames(
     has_mask = bool(sim.scenario.movers)
     frames = Frames(sim.frame_stamps_ns.copy(), images, ranges, masks if has_mask else None, vel)
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(
-            tmp,
-            stamps=frames.stamps_ns,
-            images=images,
-            range=ranges.astype(np.float16),  # 5e-4 relative: far below the errors scored
-            mask=masks,
-            has_mask=has_mask,
-            velocity=vel,
-        )
-        tmp.replace(path)
+        _store(path, frames)
     return frames
+
+
+def _store(path: Path, frames: Frames) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    n, h, w = frames.images.shape
+    np.savez(
+        tmp,
+        stamps=frames.stamps_ns,
+        images=frames.images,
+        range=frames.range_m.astype(np.float16),  # 5e-4 relative: far below the errors scored
+        mask=frames.mask if frames.mask is not None else np.zeros((n, h, w), dtype=bool),
+        has_mask=frames.mask is not None,
+        velocity=frames.velocity,
+    )
+    tmp.replace(path)
 
 
 # ------------------------------------------------------------------------ one case
@@ -474,7 +604,7 @@ def _pooled(
     scores = [
         s
         for r in runs
-        if not r.case.bag
+        if not (r.case.bag or r.case.rate_hz or r.case.imu or r.case.effects)
         and r.case.scenario in STATIC
         and bool(r.case.bias) == biased
         and (only is None or r.case.scenario in only)
@@ -519,9 +649,9 @@ def run_bench(
             src = bag_source(case.bag)
         else:
             sim = _sim(case, profile)
-            key = _cache_key(sim)
+            key = _cache_key(sim, case.effects)
             if key not in images:
-                images = {key: load_frames(sim, cache_dir, log)}
+                images = {key: load_frames(sim, cache_dir, log, case)}
             frames = images[key]
             held = frames.images.nbytes + frames.range_m.nbytes + frames.velocity.nbytes
             held += frames.mask.nbytes if frames.mask is not None else 0
@@ -901,15 +1031,40 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def parse_case(item: str) -> Case:
+    """A case from its label: ``NAME[@RATEhz][+IMU][+EFFECT]...[+bias]``, e.g.
+    ``car@10hz+mems200+blur+jpeg`` (IMU one of :data:`bags.sim.sensors.IMU_MODELS`, effects of
+    :data:`EFFECTS`; ``car`` runs :data:`CAR_SECONDS`)."""
+    head, *extras = item.strip().split("+")
+    name, _, rate_text = head.partition("@")
+    scenarios.get(name)  # ScenarioError names the known ones
+    rate = 0.0
+    if rate_text:
+        try:
+            rate = float(rate_text.lower().removesuffix("hz"))
+        except ValueError:
+            rate = -1.0
+        if not (math.isfinite(rate) and rate > 0):
+            raise BenchError(f"case {item!r}: the rate must be like @10hz, got {rate_text!r}")
+    imu = ""
+    effects: list[str] = []
+    bias = 0.0
+    for x in extras:
+        if x == "bias":
+            bias = BIAS
+        elif x in IMU_MODELS and not imu:
+            imu = x
+        elif x in EFFECTS and x not in effects:
+            effects.append(x)
+        else:
+            known = ", ".join(("bias", *IMU_MODELS, *EFFECTS))
+            raise BenchError(f"case {item!r}: unknown suffix {x!r} (known: {known})")
+    seconds = CAR_SECONDS if name == "car" else 0.0
+    return Case(name, bias, "", rate, seconds, imu, tuple(effects))
+
+
 def _parse_cases(text: str) -> tuple[Case, ...]:
-    out = []
-    for item in text.split(","):
-        name, _, extra = item.strip().partition("+")
-        if extra not in ("", "bias"):
-            raise BenchError(f"case {item!r}: only the suffix '+bias' is known")
-        scenarios.get(name)  # ScenarioError names the known ones
-        out.append(Case(name, BIAS if extra else 0.0))
-    return tuple(out)
+    return tuple(parse_case(item) for item in text.split(","))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
