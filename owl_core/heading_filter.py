@@ -334,10 +334,10 @@ class TwoModelHeading:
             lam = self.options.memory
             self.loglik = lam * self.loglik + np.array([m.last_loglik for m in self.models])
         w = self.weights
-        hs = [m.heading for m in self.models]
-        assert hs[0] is not None and hs[1] is not None
-        h = _unit(w[0] * hs[0] + w[1] * hs[1])
-        spread = [math.acos(min(1.0, float(abs(hi @ h)))) for hi in hs]
+        h0, h1 = self.models[0].heading, self.models[1].heading
+        assert h0 is not None and h1 is not None
+        h = _unit(w[0] * h0 + w[1] * h1)
+        spread = [math.acos(min(1.0, float(abs(hi @ h)))) for hi in (h0, h1)]
         var = sum(
             wi * (m.sigma_rad**2 + d * d) for wi, m, d in zip(w, self.models, spread, strict=True)
         )
