@@ -26,8 +26,10 @@ for each method (they share tracking); ``estimation_speedup`` = baseline estimat
 OWL estimation time (tracking excluded). One thread (OpenCV and BLAS). Peak memory is the
 process's maximum resident set size (it includes rendering).
 
-``owl_bench`` (full, ``make bench``): 640x480, 1000 features, 3 s at 30 Hz per case.
-``owl_bench --quick``: 320x240, 300 features, 1 s, four cases, under a minute.
+``owl_bench`` (full, ``make bench``): 640x480, 1000 features, 3 s at 30 Hz per case, plus
+the :data:`REALISTIC` cases (other rates, the car, IMU models, camera effects; labels
+``NAME[@RATEhz][+IMU][+EFFECT]...[+bias]``, :func:`parse_case`).
+``owl_bench --quick``: 320x240, 300 features, 1 s, five cases (one realistic).
 ``--json`` prints one object (keys in :func:`run_bench`'s docstring).
 """
 

@@ -155,6 +155,29 @@ def test_bag_source_scores_exactly_as_the_in_memory_frames(tmp_path):
     assert bench.main(["--bag", str(tmp_path / "nothing"), "--quiet"]) == 2
 
 
+def test_case_labels_parse_back_and_unknown_suffixes_are_refused():
+    for case in bench.FULL.cases + bench.QUICK.cases:
+        assert bench.parse_case(case.label) == case
+    c = bench.parse_case("street@20hz+adis16448+jitter+bias")
+    assert (c.rate_hz, c.imu, c.effects, c.bias) == (20.0, "adis16448", ("jitter",), bench.BIAS)
+    with pytest.raises(bench.BenchError, match="unknown suffix 'fog'"):
+        bench.parse_case("street+fog")
+    with pytest.raises(bench.BenchError, match="rate"):
+        bench.parse_case("street@fasthz")
+
+
+def test_effect_times_are_uneven_and_drop_frames_deterministically():
+    case = bench.parse_case("street+jitter+drop")
+    sim = bench._sim(case, TINY)
+    t = bench.effect_times(case, sim)
+    again = bench.effect_times(case, sim)
+    np.testing.assert_array_equal(t, again)
+    n = sim.options.num_frames
+    assert t.size < n and t[0] == 0.0 and np.all(np.diff(t) > 0)
+    gaps = np.diff(t) * sim.options.rate_hz  # in frame periods
+    assert gaps.max() > 1.5 or np.ptp(gaps) > 0.3  # uneven / a drop
+
+
 def test_cache_goes_to_the_user_cache_dir_and_is_named(tmp_path, monkeypatch, capsys):
     run = tmp_path / "somewhere"
     run.mkdir()
