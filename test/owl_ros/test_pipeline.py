@@ -124,7 +124,7 @@ def test_nominal_every_frame_processed_header_kept_heading_right(feed: Feed) -> 
         assert out.cloud.header == img.header  # stamp and frame_id of the input image
         assert out.cloud.header.frame_id == CAMERA_FRAME
     good = with_points(outs)
-    # the fit needs min_track_frames (5) frames; every later frame gives points
+    # a young track is fitted over the frames it has: every frame after the first gives points
     assert len(good) == len(feed.images) - 1
     names = [f.name for f in good[0].cloud.fields]
     assert names == [f[0] for f in OWL_FIELDS]
