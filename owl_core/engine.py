@@ -35,7 +35,8 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from owl_core import heading as hd
-from owl_core import motion
+from owl_core import heading_filter as hf
+from owl_core import motion, windows
 from owl_core.camera import CameraModel
 from owl_core.errors import InvalidInputError
 from owl_core.geometry import quat_xyzw_to_matrix
@@ -64,10 +65,15 @@ class EngineOptions:
         max_features: features tracked, count (passed to the tracker).
         tracker: further tracker settings; its ``max_features`` is replaced by
             ``max_features`` and its ``history_len`` raised to ``fit_frames`` if needed.
-        fit_frames: frames per track in the bearing-vs-time fit (>= 2; 2 = two-frame flow).
+        fit_frames: the most frames per track in the bearing-vs-time fit (>= 2; 2 =
+            two-frame flow); all of them when ``fit_window_s`` is None.
+        fit_window_s: the fit uses the frames within this many seconds of the image (at
+            least 3, at most ``fit_frames``; :func:`owl_core.windows.fit_columns`): 5
+            frames at 30 Hz, 3 at 10 Hz, 10 at 60 Hz. None: always ``fit_frames``.
         fit_order: polynomial order of that fit: 1 (straight line; its slope lags by half
             the window) or 2 (quadratic, evaluated at the current stamp).
-        min_track_frames: tracks seen in fewer frames than this (>= 2) give no point.
+        min_track_frames: tracks seen in fewer frames than this (>= 2; at most the frames
+            of the fit window) give no point.
         pixel_noise_px: 1-sigma tracking noise per image axis, pixels.
         neighbours: k nearest image neighbours used by the local looming rule, count.
         neighbour_radius_px: neighbours farther than this are not used, pixels.
@@ -90,6 +96,9 @@ class EngineOptions:
             leftover rotation of one fit window, together with the bias uncertainty).
         bias_inflation: divisor (>= 1) of each frame's bias information (consecutive fit
             windows share frames, so their errors are correlated).
+        bias_observable_sigma: a frame updates the bias only in the directions in which it
+            determines the leftover rotation to better than this 1-sigma, rad/s (the others
+            stay put: a rotation the flow cannot tell from a translation); inf: all.
         no_gyro_rotation_sigma: prior 1-sigma of the camera rotation rate when frames are
             processed without gyro, rad/s.
         max_frame_gap_s: a larger gap between frames (or a stamp going backwards) resets
@@ -100,6 +109,10 @@ class EngineOptions:
         speed_rate_gain: weight (0..1] of each frame's measurement in the filtered rate.
         max_speed_rate: clamp of one frame's measured rate, 1/s.
         heading: options of the heading / leftover-rotation estimator.
+        heading_filter: the Kalman filters (a straight and a turning path, weighted by
+            their recent innovations) that bring each frame's heading to the image time
+            (:mod:`owl_core.heading_filter`); None: a straight line through the last
+            headings instead (the earlier finite-difference route).
         seed: seed of the RANSAC random generator (results are deterministic).
     """
 
@@ -108,7 +121,8 @@ class EngineOptions:
     require_gyro: bool = True
     max_features: int = 1000
     tracker: TrackerOptions = field(default_factory=TrackerOptions)
-    fit_frames: int = 5
+    fit_frames: int = 10
+    fit_window_s: float | None = 0.15
     fit_order: int = 1
     min_track_frames: int = 5
     pixel_noise_px: float = 0.15
@@ -119,7 +133,9 @@ class EngineOptions:
     min_quality: float = 0.3
     quality_rel_sigma: float = 0.1
     min_tor: float = 1e-6
-    moving_sigma: float = 4.0
+    moving_sigma: float = 6.0
+    moving_along_sigma: float | None = 4.0
+    moving_route_sigma: float | None = 12.0
     heading_min_sin: float = 0.1
     estimate_bias: bool = True
     initial_bias_imu: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -127,12 +143,14 @@ class EngineOptions:
     bias_random_walk: float = 1e-4
     gyro_noise_density: float = 2e-4
     bias_inflation: float = 3.0
+    bias_observable_sigma: float = math.inf
     no_gyro_rotation_sigma: float = 2.0
     max_frame_gap_s: float = 0.5
     estimate_speed_change: bool = True
     speed_rate_gain: float = 0.3
     max_speed_rate: float = 5.0
     heading: hd.HeadingOptions = field(default_factory=hd.HeadingOptions)
+    heading_filter: hf.TwoModelOptions | None = field(default_factory=hf.TwoModelOptions)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -187,6 +205,12 @@ class EngineOptions:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise InvalidInputError(f"{name} must be >= 0 and finite, got {value!r}")
+        if self.fit_window_s is not None and not (
+            math.isfinite(self.fit_window_s) and self.fit_window_s > 0
+        ):
+            raise InvalidInputError(
+                f"fit_window_s must be positive or None, got {self.fit_window_s!r}"
+            )
         if not 0.0 < self.speed_rate_gain <= 1.0:
             raise InvalidInputError(
                 f"speed_rate_gain must be in (0, 1], got {self.speed_rate_gain!r}"
@@ -494,6 +518,7 @@ class OwlEngine:
         self._clock: Callable[[], float] = time.perf_counter
         self._rng = np.random.default_rng(opts.seed)
         self._state = _MotionState()
+        self._heading_filter = hf.TwoModelHeading(opts.heading_filter or None)
         self._last_tracks: Tracks | None = None
         self.frames = 0
 
@@ -560,6 +585,7 @@ class OwlEngine:
         """
         self._tracker.reset()
         self._state = _MotionState()
+        self._heading_filter.reset()
         if not keep_gyro:
             self._last_tracks = None
             self._gyro.reset()
@@ -839,13 +865,19 @@ class OwlEngine:
         t0 = self.clock()
         opts = self.options
         tracks = tracked.tracks
-        stamps = tracks.stamps_ns[: opts.fit_frames]
+        n_fit = opts.fit_frames
+        if opts.fit_window_s is not None:
+            n_fit = max(
+                windows.fit_columns(tracks.stamps_ns, stamp, opts.fit_window_s, 3, n_fit), 1
+            )
+        min_frames = min(opts.min_track_frames, max(n_fit, 2))
+        stamps = tracks.stamps_ns[:n_fit]
         gyro = self._gyro_rotations(stamps, stamp, tracked.bias, len(self._gyro) > 0)
         if isinstance(gyro, StageSkip):
             seconds = (("integrate", self.clock() - t0),)
             return StageSkip(gyro.reason, (("no_gyro", tracks.num_tracks),), seconds)
         rotations, usable_col, with_gyro, flags_all, notes = gyro
-        hist = tracks.history[:, : opts.fit_frames]
+        hist = tracks.history[:, :n_fit]
         n_tracks = hist.shape[0]
         w = hist.shape[1]
         bearings_h = self._history_bearings(stamp, tracks.ids, hist, stamps)
@@ -854,19 +886,19 @@ class OwlEngine:
         bearings_h = np.ascontiguousarray(by_col.transpose(1, 0, 2))  # (N, W, 3)
         mask = np.all(np.isfinite(bearings_h), axis=2) & usable_col[None, :w]
         tau = np.where(stamps[:w] >= 0, (stamps[:w] - stamp) * 1e-9, 0.0)
-        enough = mask.sum(axis=1) >= opts.min_track_frames
+        enough = mask.sum(axis=1) >= min_frames
         enough &= mask[:, 0]
         fit = fit_tracks(bearings_h, tau, mask & enough[:, None], opts.fit_order)
         ok = enough & fit.valid
         young = int(np.count_nonzero(~enough))
         dropped = (("young_track", young),) if young else ()
         if not ok.any():
-            why = f"no track spans {opts.min_track_frames} frames yet (tracks: {n_tracks})"
+            why = f"no track spans {min_frames} frames yet (tracks: {n_tracks})"
             seconds = (("integrate", self.clock() - t0),)
             return StageSkip(why, dropped, seconds, tuple(notes))
         idx = np.flatnonzero(ok)
         columns = np.flatnonzero(stamps >= 0)
-        columns = columns[columns < opts.fit_frames]
+        columns = columns[columns < n_fit]
         window_s = float(-tau[columns[columns < w]].min()) if columns.size > 1 else 1.0
         bearing_sigma = opts.pixel_noise_px / max(self.camera.fx, self.camera.fy)
         return _Integrated(
@@ -913,17 +945,24 @@ class OwlEngine:
             initial_heading=self._state.last_heading,
         )
         if integ.with_gyro and opts.estimate_bias:
-            self._bias.update(est.rotation_error, est.rotation_cov, prior, opts.bias_inflation)
+            self._bias.update(
+                est.rotation_error,
+                est.rotation_cov,
+                prior,
+                opts.bias_inflation,
+                max_sigma=opts.bias_observable_sigma,
+            )
         timings = (("heading", self.clock() - t0),)
         if not est.translating or est.heading is None:
             self._state.last_heading = None
             self._state.heading_history = []
+            self._heading_filter.reset()
             self._state.speed_state = None
             key = "no_translation" if not est.translating else "no_heading"
             return StageSkip(est.reason, ((key, integ.e.shape[0]),), timings)
         heading_ref = est.heading
         self._state.last_heading = heading_ref
-        heading, heading_sigma = self._heading_now(
+        args = (
             stamp,
             heading_ref,
             float(np.median(integ.tau_ref)),
@@ -931,6 +970,10 @@ class OwlEngine:
             integ.stamps,
             integ.rotations,
         )
+        if opts.heading_filter is not None:
+            heading, heading_sigma = hf.filter_step(self._heading_filter, *args)
+        else:  # a straight line through the last headings
+            heading, heading_sigma = self._heading_now(*args)
         # remove the leftover rotation found jointly with the heading
         f = integ.f + motion.cross(est.rotation_error, integ.e)
         return _Headed(est, heading_ref, heading, heading_sigma, f, timings)
@@ -976,7 +1019,10 @@ class OwlEngine:
         exh = motion.cross(e, heading_ref)
         sin = np.linalg.norm(exh, axis=1)
         along = np.einsum("ni,ni->n", omega, exh) / np.maximum(sin, 1e-12)
-        moving |= (sin > opts.heading_min_sin) & (along < -opts.moving_sigma * f_sigma)
+        along_sigma = (
+            opts.moving_sigma if opts.moving_along_sigma is None else opts.moving_along_sigma
+        )
+        moving |= (sin > opts.heading_min_sin) & (along < -along_sigma * f_sigma)
         route = motion.looming_from_heading(
             e,
             omega,
@@ -989,7 +1035,10 @@ class OwlEngine:
             both = local.valid & route.valid
             l_gap = np.abs(np.where(both, local.looming - route.looming, 0.0))
             spread = np.sqrt(np.where(both, local.variance + route.variance, 1.0))
-            moving |= both & (l_gap > opts.moving_sigma * spread)
+            route_sigma = (
+                opts.moving_sigma if opts.moving_route_sigma is None else opts.moving_route_sigma
+            )
+            moving |= both & (l_gap > route_sigma * spread)
         route = motion.HeadingRoute(
             np.where(moving, np.nan, route.looming),
             np.where(moving, np.inf, route.variance),

@@ -66,7 +66,7 @@ class HeadingOptions:
     min_sin: float = 0.05
     still_ratio: float = 1.5
     min_translation_snr: float = 3.0
-    max_points: int = 400
+    max_points: int = 1000
 
     def __post_init__(self) -> None:
         if self.ransac_hypotheses < 1:
@@ -548,6 +548,7 @@ class GyroBiasFilter:
         prior_cov_cam: npt.ArrayLike,
         inflation: float = 1.0,
         gate: float = 16.3,
+        max_sigma: float = math.inf,
     ) -> bool:
         """Apply one frame's leftover-rotation estimate (camera frame, relative to ``bias``).
 
@@ -566,6 +567,11 @@ class GyroBiasFilter:
             gate: innovation gate: a posterior delta whose squared Mahalanobis distance under
                 the prior exceeds this (chi-square, 3 dof; 16.3 = 99.9 %) is rejected as an
                 outlier (e.g. translation mistaken for rotation). inf disables the gate.
+            max_sigma: observability gate, rad/s: only the directions of the rotation in
+                which this one frame determines it to better than ``max_sigma`` (1-sigma,
+                before ``inflation``) update the bias; the others (e.g. a rotation the
+                frame cannot tell from a translation) leave it where it is. inf: every
+                direction.
 
         Returns:
             True when the measurement was applied, False when the gate rejected it.
@@ -587,8 +593,17 @@ class GyroBiasFilter:
             return False
         info_meas = info_post - info_prior
         vals, vecs = np.linalg.eigh(0.5 * (info_meas + info_meas.T))
-        info_meas = (vecs * np.maximum(vals, 0.0)) @ vecs.T / inflation
-        y = info_post @ d / inflation
+        if math.isfinite(max_sigma):
+            keep = vals > 1.0 / max_sigma**2
+            if not keep.any():
+                return False
+            vk = vecs[:, keep]
+            info_meas = (vk * vals[keep]) @ vk.T / inflation
+            # the frame's information vector, projected on the directions kept
+            y = vk @ (vk.T @ (info_post @ d)) / inflation
+        else:
+            info_meas = (vecs * np.maximum(vals, 0.0)) @ vecs.T / inflation
+            y = info_post @ d / inflation
         cov_cam = self.cov_camera
         info_state = np.linalg.inv(cov_cam)
         new_cov_cam = np.linalg.inv(info_state + info_meas)

@@ -585,3 +585,39 @@ def _unit_luma(tint: tuple[float, float, float]) -> tuple[float, float, float]:
         msg = f"tint must have positive luminance, got {tint!r}"
         raise ScenarioError(msg)
     return (r / luma, g / luma, b / luma)
+
+
+# --- effects of real cameras (applied to rendered images) ---------------------------------
+
+
+def exposure_blur(images: Sequence[npt.NDArray[np.uint8]]) -> npt.NDArray[np.uint8]:
+    """Motion blur: the mean of renders spread over the exposure time (same shape each)."""
+    if not images:
+        msg = "exposure_blur needs at least one image"
+        raise ScenarioError(msg)
+    acc = np.zeros(images[0].shape, dtype=np.float32)
+    for im in images:
+        acc += im
+    return np.clip(np.rint(acc / len(images)), 0, 255).astype(np.uint8)
+
+
+def apply_gain(image: npt.NDArray[np.uint8], gain: float) -> npt.NDArray[np.uint8]:
+    """A camera gain / exposure change: grey levels times ``gain`` (> 0), saturating."""
+    if not (math.isfinite(gain) and gain > 0):
+        msg = f"gain must be positive, got {gain!r}"
+        raise ScenarioError(msg)
+    return np.clip(np.rint(image.astype(np.float32) * gain), 0, 255).astype(np.uint8)
+
+
+def sensor_noise(
+    image: npt.NDArray[np.uint8],
+    rng: np.random.Generator,
+    read_sigma: float = 1.5,
+    shot_gain: float = 0.04,
+) -> npt.NDArray[np.uint8]:
+    """Sensor noise: Gaussian read noise plus signal-dependent shot noise, variance
+    ``read_sigma^2 + shot_gain * I`` (grey levels^2) at grey level I."""
+    img = image.astype(np.float32)
+    sigma = np.sqrt(read_sigma**2 + shot_gain * img)
+    noisy = img + sigma * rng.standard_normal(img.shape).astype(np.float32)
+    return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)

@@ -36,11 +36,13 @@ import numpy as np
 import numpy.typing as npt
 
 from bags.errors import ScenarioError
-from bags.sim.render import Rect, Renderer, box
+from bags.sim.render import Rect, Renderer, box, exposure_blur
 from bags.sim.sensors import (
     ImuData,
     ImuOptions,
     Trajectory,
+    bump_yaw,
+    car_trajectory,
     heading_following_angles,
     polynomial_path,
     scaled_path,
@@ -330,6 +332,36 @@ class Simulation:
             index, stamp, t, out.image, out.range_m, out.object_id, mask, vel, omega, r_wc, c_w
         )
 
+    def frame_at(self, t: float, index: int, exposure_s: float = 0.0, samples: int = 3) -> Frame:
+        """Render the camera at scenario time ``t`` (s; any time, e.g. uneven intervals).
+
+        ``exposure_s`` > 0: motion blur, the mean of ``samples`` renders spread evenly over
+        the exposure centred on ``t`` (:func:`bags.sim.render.exposure_blur`); range, object
+        ids, mask and twist are those at ``t``. ``index`` selects the noise stream.
+        """
+        if not (math.isfinite(exposure_s) and exposure_s >= 0) or samples < 1:
+            msg = f"exposure must be >= 0 s with >= 1 sample, got {exposure_s!r}, {samples!r}"
+            raise ScenarioError(msg)
+        stamp = self.options.start_ns + round(t * 1e9)
+        r_wc, c_w = self.pose(t)
+        out = self.renderer.render(self.scene_at(t), r_wc, c_w, index)
+        image = out.image
+        if exposure_s > 0 and samples > 1:
+            subs = []
+            for j, dt in enumerate(np.linspace(-exposure_s / 2, exposure_s / 2, samples)):
+                r_j, c_j = self.pose(t + float(dt))
+                sub = self.renderer.render(
+                    self.scene_at(t + float(dt)), r_j, c_j, index * samples + j + 1_000_000
+                )
+                subs.append(sub.image)
+            image = exposure_blur(subs)
+        moving = np.array(sorted(self.scenario.moving_ids), dtype=np.uint16)
+        mask = np.isin(out.object_id, moving)
+        vel, omega = self.twist(t)
+        return Frame(
+            index, stamp, t, image, out.range_m, out.object_id, mask, vel, omega, r_wc, c_w
+        )
+
     def frames(self) -> Iterator[Frame]:
         """Render every frame in order."""
         for k in range(self.options.num_frames):
@@ -455,6 +487,44 @@ def _turn_trajectory() -> Trajectory:
     return Trajectory(path, heading_following_angles(path, gain=0.6))
 
 
+def _avenue_scene() -> list[Rect]:
+    """The street widened (walls at +-11 m, boxes 1.7 x farther out), for paths that
+    weave across it."""
+    rects = [
+        _ground(),
+        _wall(-30.0, 200.0, 11.0, 10.0, 2, 102),
+        _wall(-30.0, 200.0, -11.0, 9.0, 3, 103),
+        Rect((200, 0, 6), (0, -1, 0), (0, 0, 1), 12, 6, 4, 104, 0.05, 0.8, (0.8, 0.9, 1.0)),
+    ]
+    tints = [(1.0, 0.6, 0.5), (0.5, 0.7, 1.0), (0.7, 1.0, 0.6), (1.0, 1.0, 0.5)]
+    for i in range(16):
+        x = -10.0 + 9.0 * i
+        y = (6.0 + (i % 3)) * (1 if i % 2 else -1)
+        size = (2.0 + (i % 4), 1.6 + 0.3 * (i % 3), 1.2 + 0.6 * (i % 5))
+        rects += box(
+            (x, y, size[2] / 2),
+            size,
+            10 + i,
+            texture_seed=200 + 10 * i,
+            texel_m=0.008,
+            brightness=0.9,
+            tint=tints[i % len(tints)],
+        )
+    return rects
+
+
+def _car_speed(t: F64) -> tuple[F64, F64]:
+    # 1 m/s at t = 0, 8 m/s at t = 4 s, 1 m/s again at 8 s
+    w = 2 * np.pi / 8.0
+    return 4.5 - 3.5 * np.cos(w * t), 3.5 * w * np.sin(w * t)
+
+
+def _car_yaw(t: F64) -> tuple[F64, F64, F64]:
+    # yaw rate 0.6 sin(2 pi t / 4): left and right turns at up to 0.6 rad/s
+    w = 2 * np.pi / 4.0
+    return -0.6 / w * np.cos(w * t), 0.6 * np.sin(w * t), 0.6 * w * np.cos(w * t)
+
+
 def _build() -> dict[str, Scenario]:
     street = tuple(_street_scene())
     out = [
@@ -538,6 +608,34 @@ def _build() -> dict[str, Scenario]:
             "street, camera not moving at all: no points, no heading expected",
             street,
             Trajectory(polynomial_path(_H, (0, 0, 0)), _NO_ROT),
+        ),
+        Scenario(
+            "car",
+            "a car weaving down a wide street (speed 1 to 8 m/s, yaw rate up to 0.6 rad/s), "
+            "camera and IMU 1.5 m ahead of the rear axle: the heading swings up to 20 deg off "
+            "the optical axis in turns (meant for 10 Hz)",
+            tuple(_avenue_scene()),
+            car_trajectory(_car_speed, _car_yaw, 1.5, (0.0, 0.0, CAMERA_HEIGHT)),
+        ),
+        Scenario(
+            "sideways",
+            "street, camera moving sideways (to its right) at 0.4 m/s; its yaw rate is zero, "
+            "rises to 0.4 rad/s and falls back to zero between 1 and 2 s (a slider whose "
+            "rotation starts and stops)",
+            street,
+            Trajectory(
+                polynomial_path((5.0, 2.0, CAMERA_HEIGHT), (0.0, -0.4, 0.0)),
+                bump_yaw(1.0, 1.0, 0.4),
+            ),
+        ),
+        Scenario(
+            "slow_start",
+            "street, camera starting at 0.3 m/s and accelerating forward at 1 m/s^2, gentle "
+            "yaw and pitch",
+            street,
+            Trajectory(
+                polynomial_path(_H, (0.3, 0.0, 0.0), (1.0, 0.0, 0.0)), _street_rotation(0.05, 0.02)
+            ),
         ),
         Scenario(
             "receding",

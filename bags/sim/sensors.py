@@ -311,6 +311,150 @@ def synthesize_imu(
     return ImuData(stamps, gyro, accel, st.omega_b, bias)
 
 
+# --- IMU models of real parts -------------------------------------------------------------
+
+
+def imu_model(
+    rate_hz: float,
+    gyro_noise_density: float,
+    gyro_bias_walk: float,
+    accel_noise_density: float,
+) -> ImuOptions:
+    """An :class:`ImuOptions` from datasheet densities.
+
+    Args:
+        rate_hz: sample rate, Hz.
+        gyro_noise_density: gyro white-noise density, rad/s/sqrt(Hz) (per-sample standard
+            deviation = density * sqrt(rate)).
+        gyro_bias_walk: gyro bias random walk, rad/s/sqrt(s).
+        accel_noise_density: accelerometer noise density, m/s^2/sqrt(Hz).
+    """
+    root = math.sqrt(rate_hz)
+    return ImuOptions(
+        rate_hz=rate_hz,
+        gyro_noise=gyro_noise_density * root,
+        gyro_bias_walk=gyro_bias_walk,
+        accel_noise=accel_noise_density * root,
+    )
+
+
+#: IMU models of real parts (densities from the datasheets / the datasets' calibrations):
+#: ``adis16448``: Analog Devices ADIS16448 as in EuRoC MAV (kalibr values: gyro 1.6968e-4
+#: rad/s/sqrt(Hz), bias random walk 1.9393e-5 rad/s^2/sqrt(Hz), accelerometer 2.0e-3),
+#: 200 Hz. ``mems100`` / ``mems200`` / ``mems400``: a consumer MEMS IMU (Bosch BMI055-class
+#: as in the RealSense D435i, phones: gyro 0.014 deg/s/sqrt(Hz) = 2.44e-4 rad/s/sqrt(Hz),
+#: a bias random walk of 1e-4 rad/s/sqrt(s), accelerometer 150 ug/sqrt(Hz)) at 100, 200 and
+#: 400 Hz.
+IMU_MODELS: dict[str, ImuOptions] = {
+    "adis16448": imu_model(200.0, 1.6968e-4, 1.9393e-5, 2.0e-3),
+    **{
+        f"mems{int(r)}": imu_model(r, math.radians(0.014), 1e-4, 150e-6 * 9.80665)
+        for r in (100.0, 200.0, 400.0)
+    },
+}
+
+
+# --- a car ----------------------------------------------------------------------------------
+
+
+def car_trajectory(
+    speed_fn: Callable[[F64], tuple[F64, F64]],
+    yaw_fn: Callable[[F64], tuple[F64, F64, F64]],
+    lever_m: float,
+    p0: npt.ArrayLike = (0.0, 0.0, 0.0),
+    t_range: tuple[float, float] = (-2.0, 62.0),
+    dt: float = 1e-3,
+) -> Trajectory:
+    """A car without side slip: its rear axle moves along its own x axis at the speed
+    ``speed_fn(t)``, its yaw is ``yaw_fn(t)``; the returned trajectory is the point
+    ``lever_m`` ahead of the axle (where camera and IMU sit), with yaw = the car's.
+
+    The camera velocity is exact: ``v = s (cos y, sin y, 0) + lever y' (-sin y, cos y, 0)``
+    (in turns it points off the car's axis, by atan(lever y' / s)), and so is its
+    acceleration; the axle position is integrated from the exact velocity (trapezoid rule on
+    a ``dt`` grid over ``t_range``, then cubic Hermite interpolation with the exact
+    velocity: position errors below 1e-6 m over a minute).
+
+    Args:
+        speed_fn: t (N,) -> (speed m/s, its rate m/s^2), each (N,).
+        yaw_fn: t (N,) -> (yaw rad, yaw rate rad/s, yaw acceleration rad/s^2), each (N,).
+        lever_m: camera ahead of the rear axle, metres.
+        p0: axle position at t = 0, world, metres.
+        t_range: times (s) the trajectory is defined on; outside, positions extrapolate.
+        dt: integration step, s.
+    """
+    grid = np.arange(t_range[0], t_range[1] + dt, dt)
+    s_g, _ = speed_fn(grid)
+    y_g, _, _ = yaw_fn(grid)
+    v_g = np.stack([s_g * np.cos(y_g), s_g * np.sin(y_g)], axis=1)
+    steps = 0.5 * (v_g[1:] + v_g[:-1]) * dt
+    p_g = np.concatenate([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
+    k0 = int(np.argmin(np.abs(grid)))
+    p_g = p_g - p_g[k0] + np.asarray(p0, dtype=np.float64)[:2] - v_g[k0] * grid[k0]
+    z0 = float(np.asarray(p0, dtype=np.float64)[2])
+
+    def position(t: F64) -> tuple[F64, F64, F64]:
+        s, sd = speed_fn(t)
+        yaw, yr, ya = yaw_fn(t)
+        c, sn = np.cos(yaw), np.sin(yaw)
+        # axle position: cubic Hermite between grid nodes with the exact velocity
+        k = np.clip(np.floor((t - grid[0]) / dt).astype(np.int64), 0, grid.size - 2)
+        u = (t - grid[k]) / dt
+        h00, h10 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u
+        h01, h11 = -2 * u**3 + 3 * u**2, u**3 - u**2
+        axle = (
+            h00[:, None] * p_g[k]
+            + h10[:, None] * dt * v_g[k]
+            + h01[:, None] * p_g[k + 1]
+            + h11[:, None] * dt * v_g[k + 1]
+        )
+        fwd = np.stack([c, sn], axis=1)
+        left = np.stack([-sn, c], axis=1)
+        p2 = axle + lever_m * fwd
+        v2 = s[:, None] * fwd + (lever_m * yr)[:, None] * left
+        a2 = (
+            sd[:, None] * fwd
+            + (s * yr)[:, None] * left
+            + (lever_m * ya)[:, None] * left
+            - (lever_m * yr * yr)[:, None] * fwd
+        )
+        z = np.zeros((t.size, 1))
+        return (
+            np.concatenate([p2, z + z0], axis=1),
+            np.concatenate([v2, z], axis=1),
+            np.concatenate([a2, z], axis=1),
+        )
+
+    def angles(t: F64) -> tuple[F64, F64]:
+        yaw, yr, _ = yaw_fn(t)
+        ang = np.zeros((t.size, 3))
+        rate = np.zeros((t.size, 3))
+        ang[:, 0], rate[:, 0] = yaw, yr
+        return ang, rate
+
+    return Trajectory(position, angles)
+
+
+def bump_yaw(
+    start_s: float, duration_s: float, peak_rate: float
+) -> Callable[[F64], tuple[F64, F64]]:
+    """Yaw whose rate is zero, then rises and falls as a raised cosine (peak ``peak_rate``
+    rad/s over ``duration_s`` from ``start_s``), then is zero again: a rotation that
+    starts and stops. Returns angles(t) -> ((yaw, pitch, roll), rates)."""
+
+    def fn(t: F64) -> tuple[F64, F64]:
+        u = np.clip((t - start_s) / duration_s, 0.0, 1.0)
+        inside = (t > start_s) & (t < start_s + duration_s)
+        rate = np.where(inside, 0.5 * peak_rate * (1.0 - np.cos(2 * np.pi * u)), 0.0)
+        yaw = 0.5 * peak_rate * duration_s * (u - np.sin(2 * np.pi * u) / (2 * np.pi))
+        ang = np.zeros((t.size, 3))
+        rates = np.zeros((t.size, 3))
+        ang[:, 0], rates[:, 0] = yaw, rate
+        return ang, rates
+
+    return fn
+
+
 def random_camera_to_imu(rng: np.random.Generator, max_tilt_deg: float = 25.0) -> F64:
     """A random camera-to-IMU rotation (3, 3) whose camera still looks at the scene.
 

@@ -6,12 +6,19 @@ cache (``~/.cache/owl_ros/frames``, see ``--cache-dir``; the images do not depen
 IMU, so the biased and unbiased rows share them). Then one pass over the frames:
 
 1. the OWL engine (:class:`owl_core.engine.OwlEngine`) processes the image and the gyro;
-2. on exactly the engine's tracks of that frame, the baseline runs twice
-   (:mod:`owl_core.baseline`): OpenCV's 5-point essential matrix + recoverPose +
-   triangulation ("cv-5pt"), and the gyro-aided translation-only variant ("cv-gyro",
-   derotated with the same gyro, without bias estimation);
-3. all three are scored by the same :mod:`owl_ros.tools.evaluate` functions against the
-   exact truth.
+2. on exactly the engine's tracks of that frame, the baseline runs at each frame gap of
+   :data:`GAPS` (1, 2 and 4: the current frame paired with the one that many frames
+   earlier) in two variants (:mod:`owl_core.baseline`): OpenCV's 5-point essential matrix
+   + recoverPose + triangulation ("cv-5pt@G"), and the gyro-aided translation-only variant
+   ("cv-gyro@G", derotated with the same gyro, without bias estimation);
+3. all are scored by the same :mod:`owl_ros.tools.evaluate` functions against the truth. Per case
+   the best baseline (lowest heading median, then p90) is named, and OWL is checked
+   against the lowest median and p90 any baseline reaches at any gap.
+
+``--bag BAG`` (repeatable) runs the same on a recorded or imported bag in the standard
+layout (``/camera/image_raw``, ``/camera/camera_info``, ``/imu/data``, ``/tf_static``,
+``/ground_truth/twist``; ``/ground_truth/range`` and ``moving_mask`` when present), see
+:func:`bag_source`.
 
 Timing: per-stage times from the engine (track = LK + detection, integrate, heading,
 looming) and the baseline's estimation time; frames/s = frames / (tracking + estimation)
@@ -19,8 +26,10 @@ for each method (they share tracking); ``estimation_speedup`` = baseline estimat
 OWL estimation time (tracking excluded). One thread (OpenCV and BLAS). Peak memory is the
 process's maximum resident set size (it includes rendering).
 
-``owl_bench`` (full, ``make bench``): 640x480, 1000 features, 3 s at 30 Hz per case.
-``owl_bench --quick``: 320x240, 300 features, 1 s, four cases, under a minute.
+``owl_bench`` (full, ``make bench``): 640x480, 1000 features, 3 s at 30 Hz per case, plus
+the :data:`REALISTIC` cases (other rates, the car, IMU models, camera effects; labels
+``NAME[@RATEhz][+IMU][+EFFECT]...[+bias]``, :func:`parse_case`).
+``owl_bench --quick``: 320x240, 300 features, 1 s, five cases (one realistic).
 ``--json`` prints one object (keys in :func:`run_bench`'s docstring).
 """
 
@@ -35,7 +44,7 @@ import platform
 import resource
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -46,37 +55,68 @@ import numpy.typing as npt
 
 from bags.cli import OneLineErrorParser, user_cache_dir
 from bags.errors import BagError
+from bags.io import BagReader, RawMessage
 from bags.sim import scenarios
+from bags.sim.render import apply_gain, sensor_noise
 from bags.sim.scenarios import SimOptions, Simulation
-from bags.sim.sensors import ImuOptions
+from bags.sim.sensors import IMU_MODELS, ImuOptions
 from owl_core.baseline import BaselineFrame, BaselineOptions, TwoViewBaseline
+from owl_core.camera import CameraModel
 from owl_core.engine import EngineOptions, OwlEngine
 from owl_core.errors import OwlError
-from owl_core.types import FrameResult, ImageFrame
-from owl_ros.tools.errors import BenchError, ToolError
+from owl_core.types import FrameResult, GyroSamples, ImageFrame
+from owl_ros.tools.errors import BenchError, EvalError, ToolError
 from owl_ros.tools.evaluate import Estimate, FrameScore, Truth, score_frame, summarize
 from owl_ros.tools.threads import one_thread
 
 PROG = "owl_bench"
-#: Thread-count variables main() sets to 1 (unless already set) for one-thread timings.
-METHODS = ("owl", "cv-5pt", "cv-gyro")
+#: Frame gaps at which both baselines run (the current frame paired with the one this many
+#: frames earlier): 1 is the strongest two-view estimate on straight motion, 4 has more
+#: parallax but lags on curving paths.
+GAPS = (1, 2, 4)
+BASELINES = ("cv-5pt", "cv-gyro")
+#: Every scored method: OWL and each baseline at each gap ("cv-5pt@1", ...).
+METHODS = ("owl", *(f"{b}@{g}" for b in BASELINES for g in GAPS))
 #: Bias magnitude of the biased rows, rad/s, along (1, 1, 1)/sqrt(3) in the IMU frame.
 BIAS = 0.01
 #: Scenarios without independently moving objects and with translation (pooled accuracy).
 STATIC = ("cube", "scaled", "accel", "turn", "street", "receding")
 
 
+#: Image effects of real cameras a case can add (:func:`effect_frames`).
+EFFECTS = ("blur", "noise", "gain", "jpeg", "jitter", "drop")
+
+
 @dataclass(frozen=True)
 class Case:
-    """One benchmark row: a scenario and a gyro-bias magnitude (rad/s)."""
+    """One benchmark row: a scenario and a gyro-bias magnitude (rad/s), or a bag
+    (``bag``: path of a bag in the standard layout; ``scenario`` is then "bag").
+
+    Attributes:
+        scenario: scenario name. bias: constant gyro bias magnitude, rad/s.
+        bag: path of a bag ("" = synthetic).
+        rate_hz: camera rate, Hz (0 = the profile's).
+        seconds: duration, s (0 = the profile's).
+        imu: IMU model name of :data:`bags.sim.sensors.IMU_MODELS` ("" = the default IMU).
+        effects: image effects of :data:`EFFECTS`.
+    """
 
     scenario: str
     bias: float = 0.0
+    bag: str = ""
+    rate_hz: float = 0.0
+    seconds: float = 0.0
+    imu: str = ""
+    effects: tuple[str, ...] = ()
 
     @property
     def label(self) -> str:
-        """e.g. "street" or "street+bias"."""
-        return self.scenario + ("+bias" if self.bias else "")
+        """e.g. "street", "street+bias", "car@10hz+mems200+blur" or "bag:NAME"."""
+        if self.bag:
+            return "bag:" + Path(self.bag).name
+        out = self.scenario + (f"@{self.rate_hz:g}hz" if self.rate_hz else "")
+        out += "".join(f"+{x}" for x in (self.imu, *self.effects) if x)
+        return out + ("+bias" if self.bias else "")
 
 
 @dataclass(frozen=True)
@@ -96,6 +136,22 @@ class Profile:
     clock: str = "cpu"
 
 
+#: Duration of the ``car`` cases, s (its speed and yaw profile repeats every 8 s).
+CAR_SECONDS = 8.0
+#: Cases of real cameras and IMUs: rates of 10 to 60 Hz, a car at 10 Hz, a slider whose
+#: rotation starts and stops, a slow start, IMU models of real parts, image effects.
+REALISTIC = (
+    Case("street", rate_hz=10.0),
+    Case("street", rate_hz=20.0),
+    Case("street", rate_hz=60.0),
+    Case("car", rate_hz=10.0, seconds=CAR_SECONDS),
+    Case("car", 0.0, "", 10.0, CAR_SECONDS, "mems200", ("blur", "noise", "gain", "jpeg")),
+    Case("sideways", rate_hz=26.0, imu="adis16448"),
+    Case("slow_start"),
+    Case("street", imu="adis16448", effects=("jitter", "drop")),
+    Case("street", imu="mems400", effects=("blur", "noise", "gain", "jpeg")),
+    Case("turn", imu="mems100"),
+)
 FULL = Profile(
     "full",
     640,
@@ -103,7 +159,8 @@ FULL = Profile(
     3.0,
     1000,
     tuple(Case(s) for s in (*STATIC, "mover", "rotation_only"))
-    + tuple(Case(s, BIAS) for s in ("street", "turn", "cube", "mover")),
+    + tuple(Case(s, BIAS) for s in ("street", "turn", "cube", "mover"))
+    + REALISTIC,
 )
 QUICK = Profile(
     "quick",
@@ -111,7 +168,13 @@ QUICK = Profile(
     240,
     1.0,
     300,
-    (Case("street"), Case("street", BIAS), Case("cube"), Case("mover")),
+    (
+        Case("street"),
+        Case("street", BIAS),
+        Case("cube"),
+        Case("mover"),
+        Case("car", 0.0, "", 10.0, CAR_SECONDS, "mems200", ("noise", "jpeg")),
+    ),
 )
 
 
@@ -136,17 +199,88 @@ class Frames:
 
 def _sim(case: Case, profile: Profile) -> Simulation:
     b = case.bias / math.sqrt(3.0)
+    imu = IMU_MODELS[case.imu] if case.imu else ImuOptions()
     opts = SimOptions(
-        seconds=profile.seconds,
-        rate_hz=profile.rate_hz,
+        seconds=case.seconds or profile.seconds,
+        rate_hz=case.rate_hz or profile.rate_hz,
         width=profile.width,
         height=profile.height,
-        imu=ImuOptions(gyro_bias=(b, b, b)),
+        imu=replace(imu, gyro_bias=(b, b, b)),
     )
     return scenarios.get(case.scenario).simulate(opts)
 
 
-def _cache_key(sim: Simulation) -> str:
+def effect_times(case: Case, sim: Simulation) -> npt.NDArray[np.float64]:
+    """Scenario times (s) of the frames a case's camera delivers: the regular grid, moved
+    by up to +-25 % of the period ("jitter": uneven intervals), with 10 % of the frames
+    (and never the first three) left out ("drop"). Seeded: the same every run."""
+    n = sim.options.num_frames
+    period = 1.0 / sim.options.rate_hz
+    t = np.arange(n) * period
+    rng = np.random.default_rng(1414)
+    if "jitter" in case.effects:
+        t[1:] += rng.uniform(-0.25, 0.25, n - 1) * period
+    if "drop" in case.effects:
+        keep = rng.random(n) >= 0.1
+        keep[:3] = True
+        t = t[keep]
+    return t
+
+
+#: Exposure time of the "blur" effect, s (a daylight exposure of a machine-vision camera).
+EXPOSURE_S = 0.008
+
+
+def effect_frames(
+    case: Case, sim: Simulation, log: Callable[[str], None] = lambda s: None
+) -> Frames:
+    """Frames of a case with image effects (:data:`EFFECTS`), rendered in memory.
+
+    blur: each image the mean of 3 renders over an exposure of :data:`EXPOSURE_S`
+    (:meth:`bags.sim.scenarios.Simulation.frame_at`); noise: read + shot sensor noise
+    (:func:`bags.sim.render.sensor_noise`); gain: a seeded auto-gain walk (x0.75 to x1.3,
+    steps up to 6 % per frame, :func:`bags.sim.render.apply_gain`); jpeg: each image
+    through a sensor_msgs/CompressedImage at JPEG quality 80 (the message adapters'
+    encoder and decoder); jitter / drop: :func:`effect_times`. Truth at each frame's time.
+    """
+    from msg_adapters.image import array_to_compressed, compressed_to_frame
+
+    times = effect_times(case, sim)
+    n = times.size
+    w, h = sim.options.width, sim.options.height
+    images = np.zeros((n, h, w), dtype=np.uint8)
+    ranges = np.zeros((n, h, w), dtype=np.float32)
+    masks = np.zeros((n, h, w), dtype=bool)
+    vel = np.zeros((n, 3))
+    stamps = np.zeros(n, dtype=np.int64)
+    rng = np.random.default_rng(2828)
+    gain = 1.0
+    exposure = EXPOSURE_S if "blur" in case.effects else 0.0
+    t0 = time.monotonic()
+    for k, t in enumerate(times):
+        f = sim.frame_at(float(t), k, exposure)
+        img = f.image if f.image.ndim == 2 else f.image.mean(axis=2).astype(np.uint8)
+        if "gain" in case.effects:
+            gain = float(np.clip(gain * math.exp(rng.uniform(-0.06, 0.06)), 0.75, 1.3))
+            img = apply_gain(img, gain)
+        if "noise" in case.effects:
+            img = sensor_noise(img, rng)
+        if "jpeg" in case.effects:
+            img = compressed_to_frame(array_to_compressed(img, "mono8", "jpeg", None, 80)).image
+        images[k], ranges[k], masks[k], vel[k], stamps[k] = (
+            img,
+            f.range_m,
+            f.mask,
+            f.velocity,
+            f.stamp_ns,
+        )
+        if (k + 1) % max(1, n // 4) == 0:
+            log(f"  rendered {k + 1}/{n} frames of {case.label} ({time.monotonic() - t0:.0f} s)")
+    has_mask = bool(sim.scenario.movers)
+    return Frames(stamps, images, ranges, masks if has_mask else None, vel)
+
+
+def _cache_key(sim: Simulation, effects: tuple[str, ...] = ()) -> str:
     o = sim.options
     src = Path(scenarios.__file__).parent
     digest = hashlib.sha1()
@@ -163,15 +297,21 @@ def _cache_key(sim: Simulation) -> str:
         f"ss{o.supersample}",
         f"sc{sim.scale:g}",
         digest.hexdigest()[:10],
+        *effects,
     ]
     return "_".join(parts)
 
 
 def load_frames(
-    sim: Simulation, cache_dir: Path | None, log: Callable[[str], None] = lambda s: None
+    sim: Simulation,
+    cache_dir: Path | None,
+    log: Callable[[str], None] = lambda s: None,
+    case: Case | None = None,
 ) -> Frames:
-    """The simulation's frames, from ``cache_dir`` when cached there (else rendered, stored)."""
-    path = cache_dir / f"{_cache_key(sim)}.npz" if cache_dir is not None else None
+    """The simulation's frames, from ``cache_dir`` when cached there (else rendered, stored);
+    with the image effects of ``case`` when it has any (:func:`effect_frames`)."""
+    effects = case.effects if case is not None else ()
+    path = cache_dir / f"{_cache_key(sim, effects)}.npz" if cache_dir is not None else None
     if path is not None and path.is_file():
         try:
             with np.load(path) as z:
@@ -181,6 +321,11 @@ def load_frames(
                 )
         except (OSError, ValueError, KeyError):
             log(f"cache {path} unreadable: rendering again")
+    if case is not None and case.effects:
+        frames = effect_frames(case, sim, log)
+        if path is not None:
+            _store(path, frames)
+        return frames
     n = sim.options.num_frames
     w, h = sim.options.width, sim.options.height
     images = np.zeros((n, h, w), dtype=np.uint8)
@@ -198,19 +343,24 @@ def load_frames(
     has_mask = bool(sim.scenario.movers)
     frames = Frames(sim.frame_stamps_ns.copy(), images, ranges, masks if has_mask else None, vel)
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(
-            tmp,
-            stamps=frames.stamps_ns,
-            images=images,
-            range=ranges.astype(np.float16),  # 5e-4 relative: far below the errors scored
-            mask=masks,
-            has_mask=has_mask,
-            velocity=vel,
-        )
-        tmp.replace(path)
+        _store(path, frames)
     return frames
+
+
+def _store(path: Path, frames: Frames) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    n, h, w = frames.images.shape
+    np.savez(
+        tmp,
+        stamps=frames.stamps_ns,
+        images=frames.images,
+        range=frames.range_m.astype(np.float16),  # 5e-4 relative: far below the errors scored
+        mask=frames.mask if frames.mask is not None else np.zeros((n, h, w), dtype=bool),
+        has_mask=frames.mask is not None,
+        velocity=frames.velocity,
+    )
+    tmp.replace(path)
 
 
 # ------------------------------------------------------------------------ one case
@@ -226,6 +376,51 @@ def owl_estimate(res: FrameResult) -> Estimate:
 def baseline_estimate(res: BaselineFrame) -> Estimate:
     """What owl_eval scores of a baseline frame (no bias estimate)."""
     return Estimate(res.stamp_ns, res.heading, res.pixels, res.range_over_speed, res.flags)
+
+
+@dataclass(frozen=True)
+class Source:
+    """What one case feeds the estimators: camera, extrinsic, gyro and frames with truth.
+
+    Attributes:
+        camera: the camera model.
+        camera_to_imu_xyzw: rotation camera -> IMU frame, quaternion (x, y, z, w).
+        imu_time_offset_s: IMU stamp minus camera stamp, s.
+        gyro: every gyro sample (IMU frame, IMU clock).
+        truth_bias: (3,) true gyro bias, IMU frame, rad/s, or None (unknown).
+        has_mask: the truth has a moving-object mask.
+        frames: callable returning an iterator of (stamp_ns, (H, W) uint8 image, Truth).
+        num_frames: frames the iterator yields.
+    """
+
+    camera: CameraModel
+    camera_to_imu_xyzw: tuple[float, float, float, float]
+    imu_time_offset_s: float
+    gyro: GyroSamples
+    truth_bias: npt.NDArray[np.float64] | None
+    has_mask: bool
+    frames: Callable[[], Iterator[tuple[int, npt.NDArray[np.uint8], Truth]]]
+    num_frames: int
+
+
+def sim_source(case: Case, frames: Frames, sim: Simulation) -> Source:
+    """A synthetic case's :class:`Source` (rendered frames, the simulation's IMU)."""
+    b = case.bias / math.sqrt(3.0)
+
+    def it() -> Iterator[tuple[int, npt.NDArray[np.uint8], Truth]]:
+        for k in range(frames.stamps_ns.size):
+            yield int(frames.stamps_ns[k]), frames.images[k], frames.truth(k)
+
+    return Source(
+        sim.camera,
+        sim.camera_to_imu_xyzw,
+        sim.imu_time_offset_ns * 1e-9,
+        sim.gyro_samples(),
+        np.array([b, b, b]),
+        frames.mask is not None,
+        it,
+        int(frames.stamps_ns.size),
+    )
 
 
 @dataclass
@@ -251,45 +446,54 @@ def run_case(
     sim: Simulation,
     keep_results: bool = False,
 ) -> CaseRun:
-    """Run OWL and both baselines over the frames, on the same tracks, and score them."""
+    """Run OWL and every baseline (each gap) over a synthetic case's frames, same tracks."""
+    return run_source(case, profile, sim_source(case, frames, sim), keep_results)
+
+
+def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = False) -> CaseRun:
+    """Run OWL and both baselines at every gap of :data:`GAPS` over ``src``, on the same
+    tracks, and score them with the same owl_eval functions."""
     engine = OwlEngine(
-        sim.camera,
+        src.camera,
         EngineOptions(
-            camera_to_imu_rotation_xyzw=sim.camera_to_imu_xyzw,
-            imu_time_offset_s=sim.imu_time_offset_ns * 1e-9,
+            camera_to_imu_rotation_xyzw=src.camera_to_imu_xyzw,
+            imu_time_offset_s=src.imu_time_offset_s,
             max_features=profile.features,
         ),
     )
     clock = time.process_time if profile.clock == "cpu" else time.perf_counter
     engine.clock = clock
-    engine.add_gyro(sim.gyro_samples())
+    engine.add_gyro(src.gyro)
     gyro = engine.gyro
 
     def rotation(t0: int, t1: int) -> npt.NDArray[np.float64] | None:
         return gyro.relative_rotation(t0, t1) if gyro.covers(t0, t1) else None
 
-    baselines = {
-        "cv-5pt": TwoViewBaseline(sim.camera, BaselineOptions(method="essential")),
-        "cv-gyro": TwoViewBaseline(sim.camera, BaselineOptions(method="gyro"), rotation),
-    }
-    b = case.bias / math.sqrt(3.0)
-    truth_bias = np.array([b, b, b])
-    run = CaseRun(case, int(frames.stamps_ns.size), {m: [] for m in METHODS})
-    run.has_mask = frames.mask is not None
+    baselines: dict[str, TwoViewBaseline] = {}
+    for g in GAPS:
+        baselines[f"cv-5pt@{g}"] = TwoViewBaseline(
+            src.camera, BaselineOptions(method="essential", gap_frames=g)
+        )
+        baselines[f"cv-gyro@{g}"] = TwoViewBaseline(
+            src.camera, BaselineOptions(method="gyro", gap_frames=g), rotation
+        )
+    run = CaseRun(case, src.num_frames, {m: [] for m in METHODS})
+    run.has_mask = src.has_mask
     run.estimate_s = dict.fromkeys(METHODS, 0.0)
     run.baseline_results = {m: [] for m in baselines}
     for base in baselines.values():
         base.clock = clock
     n_tracks = 0
-    for k in range(frames.stamps_ns.size):
-        truth = frames.truth(k)
-        res = engine.process(ImageFrame(truth.stamp_ns, frames.images[k]))
+    count = 0
+    for stamp, image, truth in src.frames():
+        count += 1
+        res = engine.process(ImageFrame(stamp, image))
         for key, value in res.timings.items():
             run.owl_stage_s[key] = run.owl_stage_s.get(key, 0.0) + value
         track_s = res.timings.get("track", 0.0)
         run.track_s += track_s
         run.estimate_s["owl"] += res.timings.get("total", 0.0) - track_s
-        run.scores["owl"].append(score_frame(owl_estimate(res), truth, truth_bias))
+        run.scores["owl"].append(score_frame(owl_estimate(res), truth, src.truth_bias))
         tracks = engine.last_tracks  # the very tracks OWL used for this frame
         if tracks is not None:
             n_tracks += tracks.num_tracks
@@ -303,6 +507,7 @@ def run_case(
                 run.baseline_results[name].append(out)
         if keep_results:
             run.owl_results.append(res)
+    run.frames = count
     run.tracks_per_frame = n_tracks / max(run.frames, 1)
     return run
 
@@ -318,9 +523,68 @@ def _method_row(run: CaseRun, method: str) -> dict[str, Any]:
     return s
 
 
+def _inf(x: Any) -> float:
+    return math.inf if x is None else float(x)
+
+
+def _rank(row: dict[str, Any]) -> tuple[float, ...]:
+    """Sort key of a method's row: heading median, then p90; with no translating frame,
+    fewer false headings first."""
+    if not row["translating_frames"]:
+        return (float(row["false_heading_frames"]), 0.0)
+    missing = 1.0 - _inf(row["heading_availability"]) if row["heading_availability"] else 1.0
+    return (_inf(row["heading_deg_median"]), _inf(row["heading_deg_p90"]), missing)
+
+
+def best_baselines(methods: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The best baseline per family and overall (by heading median, then p90), and whether
+    OWL's figures are at or below the lowest any baseline/gap reaches.
+
+    Keys: "cv-5pt", "cv-gyro" (best gap's method name of each family), "heading" (best
+    method overall), "range" (lowest r/|t| median), "owl_heading_ok" (OWL heading median
+    and p90 <= the lowest median and p90 over every baseline and gap; None without a
+    translating frame), "owl_range_ok" (the same for the r/|t| median and p90; None when
+    nothing is scored).
+    """
+    base = [m for m in methods if m != "owl"]
+    out: dict[str, Any] = {}
+    for fam in BASELINES:
+        members = [m for m in base if m.startswith(fam + "@")]
+        out[fam] = min(members, key=lambda m: _rank(methods[m]))
+    out["heading"] = min(base, key=lambda m: _rank(methods[m]))
+    out["range"] = min(base, key=lambda m: _inf(methods[m]["range_rel_median"]))
+    owl = methods["owl"]
+    if owl["translating_frames"]:
+        lows = [
+            min(_inf(methods[m][k]) for m in base)
+            for k in ("heading_deg_median", "heading_deg_p90")
+        ]
+        out["owl_heading_ok"] = bool(
+            _inf(owl["heading_deg_median"]) <= lows[0] and _inf(owl["heading_deg_p90"]) <= lows[1]
+        )
+    else:
+        out["owl_heading_ok"] = bool(
+            owl["false_heading_frames"] <= min(methods[m]["false_heading_frames"] for m in base)
+        )
+    if owl["range_rel_median"] is None and all(
+        methods[m]["range_rel_median"] is None for m in base
+    ):
+        out["owl_range_ok"] = None
+    else:
+        lows = [
+            min(_inf(methods[m][k]) for m in base) for k in ("range_rel_median", "range_rel_p90")
+        ]
+        out["owl_range_ok"] = bool(
+            _inf(owl["range_rel_median"]) <= lows[0] and _inf(owl["range_rel_p90"]) <= lows[1]
+        )
+    return out
+
+
 def case_report(run: CaseRun) -> dict[str, Any]:
-    """JSON-ready row of one case."""
+    """JSON-ready row of one case: every method (OWL, each baseline at each gap) and the
+    best baselines (:func:`best_baselines`)."""
     stages = {k: 1e3 * v / max(run.frames, 1) for k, v in run.owl_stage_s.items()}
+    methods = {m: _method_row(run, m) for m in METHODS}
     return {
         "case": run.case.label,
         "scenario": run.case.scenario,
@@ -328,20 +592,25 @@ def case_report(run: CaseRun) -> dict[str, Any]:
         "frames": run.frames,
         "tracks_per_frame": run.tracks_per_frame,
         "owl_stage_ms_per_frame": stages,
-        "methods": {m: _method_row(run, m) for m in METHODS},
+        "methods": methods,
+        "best": best_baselines(methods),
     }
 
 
 def _pooled(
-    runs: Sequence[CaseRun], method: str, biased: bool, only: set[str] | None = None
+    runs: Sequence[CaseRun],
+    method: str | Callable[[CaseRun], str],
+    biased: bool,
+    only: set[str] | None = None,
 ) -> dict[str, Any]:
     scores = [
         s
         for r in runs
-        if r.case.scenario in STATIC
+        if not (r.case.bag or r.case.rate_hz or r.case.imu or r.case.effects)
+        and r.case.scenario in STATIC
         and bool(r.case.bias) == biased
         and (only is None or r.case.scenario in only)
-        for s in r.scores[method]
+        for s in r.scores[method if isinstance(method, str) else method(r)]
     ]
     return summarize(scores, False) if scores else {}
 
@@ -358,15 +627,18 @@ def run_bench(
     """Run every case of ``profile``; returns the JSON object.
 
     Keys: profile, image_size ("WxH"), features (requested), features_per_frame (tracks
-    per frame, mean over cases), owl_fps, baseline_fps (cv-5pt), baseline_gyro_fps,
-    estimation_speedup (cv-5pt estimation time / OWL estimation time, tracking excluded),
-    estimation_speedup_gyro, owl_/baseline_/baseline_gyro_ heading_deg_median/p90 and
-    range_rel_median/p90 pooled over the static scenarios without bias, the same with suffix
+    per frame, mean over cases), owl_fps, baseline_fps (cv-5pt at gap 1),
+    baseline_gyro_fps (cv-gyro at gap 1), estimation_speedup (that cv-5pt estimation time /
+    OWL estimation time, tracking excluded), estimation_speedup_gyro,
+    estimate_ms_per_frame (every method), owl_/baseline_/baseline_gyro_/baseline_best_
+    heading_deg_median/p90 and range_rel_median/p90 pooled over the static scenarios
+    without bias (baseline = cv-5pt at each case's best gap, baseline_gyro = cv-gyro at
+    its best gap, baseline_best = each case's best baseline), the same with suffix
     ``_bias`` for the biased rows and ``_nobias_matched`` for the unbiased rows of the same
-    scenarios, owl_points_per_frame, frames_held_mb (rendered frames + truth in memory),
-    owl_stage_ms_per_frame, heading_ratio and range_ratio (OWL / cv-5pt medians),
-    peak_rss_mb, machine, cases (per-case rows: stage times, and per method every owl_eval
-    summary key + fps).
+    scenarios, pooled (every method, each pool), owl_points_per_frame, frames_held_mb,
+    owl_stage_ms_per_frame, heading_ratio and range_ratio (OWL / baseline_best medians),
+    peak_rss_mb, machine, cases (per-case rows: stage times, per method every owl_eval
+    summary key + fps, and "best").
     """
     cv2.setNumThreads(1)
     runs: list[CaseRun] = []
@@ -374,62 +646,82 @@ def run_bench(
     frames_mb = 0.0
     t_start = time.monotonic()
     for i, case in enumerate(profile.cases, start=1):
-        sim = _sim(case, profile)
         log(f"[{i}/{len(profile.cases)}] {case.label}: frames")
-        if case.scenario not in images:
-            images = {case.scenario: load_frames(sim, cache_dir, log)}
-        frames = images[case.scenario]
-        held = frames.images.nbytes + frames.range_m.nbytes + frames.velocity.nbytes
-        frames_mb = max(
-            frames_mb, (held + (frames.mask.nbytes if frames.mask is not None else 0)) / 2**20
-        )
+        if case.bag:
+            src = bag_source(case.bag)
+        else:
+            sim = _sim(case, profile)
+            key = _cache_key(sim, case.effects)
+            if key not in images:
+                images = {key: load_frames(sim, cache_dir, log, case)}
+            frames = images[key]
+            held = frames.images.nbytes + frames.range_m.nbytes + frames.velocity.nbytes
+            held += frames.mask.nbytes if frames.mask is not None else 0
+            frames_mb = max(frames_mb, held / 2**20)
+            src = sim_source(case, frames, sim)
         log(
-            f"[{i}/{len(profile.cases)}] {case.label}: OWL + baselines on {frames.stamps_ns.size} "
+            f"[{i}/{len(profile.cases)}] {case.label}: OWL + baselines on {src.num_frames} "
             f"frames ({time.monotonic() - t_start:.0f} s elapsed)"
         )
-        runs.append(run_case(case, profile, frames, sim))
-    total_frames = sum(r.frames for r in runs)
+        runs.append(run_source(case, profile, src))
+    reports = [case_report(r) for r in runs]
+    best_of = {id(r): rep["best"] for r, rep in zip(runs, reports, strict=True)}
+    total_frames = max(sum(r.frames for r in runs), 1)
     track = sum(r.track_s for r in runs)
     est = {m: sum(r.estimate_s[m] for r in runs) for m in METHODS}
     stages: dict[str, float] = {}
     for r in runs:
         for k, v in r.owl_stage_s.items():
             stages[k] = stages.get(k, 0.0) + v
+
+    def _div(a: float, b: float) -> float | None:
+        return a / b if b > 0 else None
+
     out: dict[str, Any] = {
         "profile": profile.name,
         "image_size": f"{profile.width}x{profile.height}",
         "features": profile.features,
         "seconds_per_case": profile.seconds,
+        "gaps": list(GAPS),
         "clock": profile.clock,
         "features_per_frame": float(np.mean([r.tracks_per_frame for r in runs])),
-        "owl_fps": total_frames / (track + est["owl"]),
-        "baseline_fps": total_frames / (track + est["cv-5pt"]),
-        "baseline_gyro_fps": total_frames / (track + est["cv-gyro"]),
-        "estimation_speedup": est["cv-5pt"] / est["owl"],
-        "estimation_speedup_gyro": est["cv-gyro"] / est["owl"],
+        "owl_fps": _div(total_frames, track + est["owl"]),
+        "baseline_fps": _div(total_frames, track + est["cv-5pt@1"]),
+        "baseline_gyro_fps": _div(total_frames, track + est["cv-gyro@1"]),
+        "estimation_speedup": _div(est["cv-5pt@1"], est["owl"]),
+        "estimation_speedup_gyro": _div(est["cv-gyro@1"], est["owl"]),
         "owl_stage_ms_per_frame": {k: 1e3 * v / total_frames for k, v in stages.items()},
-        "baseline_estimate_ms_per_frame": 1e3 * est["cv-5pt"] / total_frames,
-        "baseline_gyro_estimate_ms_per_frame": 1e3 * est["cv-gyro"] / total_frames,
+        "estimate_ms_per_frame": {m: 1e3 * est[m] / total_frames for m in METHODS},
+        "baseline_estimate_ms_per_frame": 1e3 * est["cv-5pt@1"] / total_frames,
+        "baseline_gyro_estimate_ms_per_frame": 1e3 * est["cv-gyro@1"] / total_frames,
     }
-    prefix = {"owl": "owl", "cv-5pt": "baseline", "cv-gyro": "baseline_gyro"}
+    pickers: dict[str, str | Callable[[CaseRun], str]] = {
+        "owl": "owl",
+        "baseline": lambda r: str(best_of[id(r)]["cv-5pt"]),
+        "baseline_gyro": lambda r: str(best_of[id(r)]["cv-gyro"]),
+        "baseline_best": lambda r: str(best_of[id(r)]["heading"]),
+    }
     with_bias = {r.case.scenario for r in runs if r.case.bias}
     pools = ((False, "", None), (False, "_nobias_matched", with_bias), (True, "_bias", None))
+    keys = ("heading_deg_median", "heading_deg_p90", "range_rel_median", "range_rel_p90")
+    pooled_all: dict[str, dict[str, Any]] = {}
     for biased, suffix, only in pools:
+        for prefix, pick in pickers.items():
+            pooled = _pooled(runs, pick, biased, only)
+            for key in keys:
+                out[f"{prefix}_{key}{suffix}"] = pooled.get(key)
+        pool_name = suffix.lstrip("_") or "nobias"
+        pooled_all[pool_name] = {}
         for m in METHODS:
             pooled = _pooled(runs, m, biased, only)
-            for key in (
-                "heading_deg_median",
-                "heading_deg_p90",
-                "range_rel_median",
-                "range_rel_p90",
-            ):
-                out[f"{prefix[m]}_{key}{suffix}"] = pooled.get(key)
+            pooled_all[pool_name][m] = {k: pooled.get(k) for k in keys}
+    out["pooled"] = pooled_all
     owl_pooled = _pooled(runs, "owl", False)
     out["owl_points_per_frame"] = owl_pooled.get("points_per_frame")
     out["heading_ratio"] = _ratio(
-        out["owl_heading_deg_median"], out["baseline_heading_deg_median"]
+        out["owl_heading_deg_median"], out["baseline_best_heading_deg_median"]
     )
-    out["range_ratio"] = _ratio(out["owl_range_rel_median"], out["baseline_range_rel_median"])
+    out["range_ratio"] = _ratio(out["owl_range_rel_median"], out["baseline_best_range_rel_median"])
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     out["frames_held_mb"] = frames_mb
     out["machine"] = {
@@ -441,7 +733,7 @@ def run_bench(
         "opencv": cv2.__version__,
     }
     out["wall_s"] = time.monotonic() - t_start
-    out["cases"] = [case_report(r) for r in runs]
+    out["cases"] = reports
     return out
 
 
@@ -471,64 +763,93 @@ def _f(x: Any, fmt: str = ".2f", scale: float = 1.0) -> str:
     return "n/a" if x is None else format(x * scale, fmt)
 
 
+def _head(s: dict[str, Any]) -> str:
+    if s["translating_frames"] == 0:
+        return f"{s['false_heading_frames']} false"
+    return f"{_f(s['heading_deg_median'])}/{_f(s['heading_deg_p90'])}"
+
+
+def _yes(x: Any) -> str:
+    return "-" if x is None else ("yes" if x else "NO")
+
+
 def report_lines(doc: dict[str, Any]) -> list[str]:
     """The benchmark as text tables."""
     lines = [
         f"{PROG} ({doc['profile']}): {doc['image_size']}, {doc['features']} features requested "
         f"({doc['features_per_frame']:.0f} tracked/frame), {doc['seconds_per_case']:g} s per "
-        f"case at 30 Hz, one thread, {doc['machine']['cpu']}, "
+        f"synthetic case, baselines at frame gaps {', '.join(map(str, doc['gaps']))}, one "
+        f"thread, {doc['machine']['cpu']}, "
         f"{'CPU' if doc.get('clock', 'wall') == 'cpu' else 'wall'} time",
         "",
-        "accuracy per case (heading error deg median/p90; r/|t| relative error median; "
-        "moving P/R):",
-        f"  {'case':<16} {'OWL head':>13} {'cv-5pt head':>13} {'cv-gyro head':>13} "
-        f"{'OWL r/|t|':>9} {'5pt r/|t|':>9} {'gyro r/|t|':>10} {'OWL pts':>7} {'moving P/R':>11}",
+        "per case and method (heading error deg median/p90, heading availability on "
+        "translating frames, r/|t| relative error median/p90, points/frame, moving P/R):",
     ]
     for c in doc["cases"]:
-        m = c["methods"]
-
-        def head(s: dict[str, Any]) -> str:
-            if s["translating_frames"] == 0:
-                return f"{s['false_heading_frames']} false"
-            return f"{_f(s['heading_deg_median'])}/{_f(s['heading_deg_p90'])}"
-
-        pr = m["owl"]
-        mov = (
-            f"{_f(pr['moving_precision'], '.0%')}/{_f(pr['moving_recall'], '.0%')}"
-            if pr["moving_precision"] is not None or pr["moving_recall"] is not None
-            else "-"
-        )
+        best = c["best"]
         lines.append(
-            f"  {c['case']:<16} {head(m['owl']):>13} {head(m['cv-5pt']):>13} "
-            f"{head(m['cv-gyro']):>13} {_f(m['owl']['range_rel_median'], '.1%'):>9} "
-            f"{_f(m['cv-5pt']['range_rel_median'], '.1%'):>9} "
-            f"{_f(m['cv-gyro']['range_rel_median'], '.1%'):>10} "
-            f"{_f(m['owl']['points_per_frame'], '.0f'):>7} {mov:>11}"
+            f"  {c['case']} ({c['frames']} frames; best baseline: {best['heading']}, best "
+            f"r/|t|: {best['range']}; OWL <= every baseline: heading "
+            f"{_yes(best['owl_heading_ok'])}, r/|t| {_yes(best['owl_range_ok'])})"
+        )
+        for name, s in c["methods"].items():
+            mark = "*" if name in (best["heading"], best["range"]) else " "
+            pr = (
+                f"{_f(s['moving_precision'], '.0%')}/{_f(s['moving_recall'], '.0%')}"
+                if s["moving_precision"] is not None or s["moving_recall"] is not None
+                else "-"
+            )
+            lines.append(
+                f"   {mark}{name:<10} {_head(s):>11} {_f(s['heading_availability'], '.0%'):>5} "
+                f"{_f(s['range_rel_median'], '.1%'):>7}/{_f(s['range_rel_p90'], '.1%'):<7} "
+                f"{_f(s['points_per_frame'], '.0f'):>5} {pr:>9}"
+            )
+    lines += [
+        "",
+        "summary per case (OWL against the best baseline at its best gap):",
+        f"  {'case':<22} {'OWL head':>11} {'best head':>11} {'best':<10} {'OWL r/|t|':>12} "
+        f"{'best r/|t|':>12} {'head ok':>7} {'r ok':>5}",
+    ]
+    for c in doc["cases"]:
+        m, best = c["methods"], c["best"]
+        o, b, r = m["owl"], m[best["heading"]], m[best["range"]]
+        lines.append(
+            f"  {c['case']:<22} {_head(o):>11} {_head(b):>11} {best['heading']:<10} "
+            f"{_f(o['range_rel_median'], '.1%'):>5}/{_f(o['range_rel_p90'], '.1%'):<6} "
+            f"{_f(r['range_rel_median'], '.1%'):>5}/{_f(r['range_rel_p90'], '.1%'):<6} "
+            f"{_yes(best['owl_heading_ok']):>7} {_yes(best['owl_range_ok']):>5}"
         )
     stage_ms = doc["owl_stage_ms_per_frame"]
     owl_est = stage_ms.get("total", 0.0) - stage_ms.get("track", 0.0)
+    est = doc["estimate_ms_per_frame"]
     lines += [
         "",
         "time per frame (ms; tracking shared by all methods):",
         "  OWL stages: " + _stages_text(stage_ms),
         f"  estimation: OWL {owl_est:.1f}, "
-        f"cv-5pt {doc['baseline_estimate_ms_per_frame']:.1f}, "
-        f"cv-gyro {doc['baseline_gyro_estimate_ms_per_frame']:.1f}",
-        f"  frames/s (tracking + estimation): OWL {doc['owl_fps']:.1f}, cv-5pt "
-        f"{doc['baseline_fps']:.1f}, cv-gyro {doc['baseline_gyro_fps']:.1f}",
-        f"  estimation speedup (baseline / OWL): cv-5pt {doc['estimation_speedup']:.2f}x, "
-        f"cv-gyro {doc['estimation_speedup_gyro']:.2f}x",
+        + ", ".join(f"{m} {v:.1f}" for m, v in est.items() if m != "owl"),
+        f"  frames/s (tracking + estimation): OWL {_f(doc['owl_fps'], '.1f')}, cv-5pt@1 "
+        f"{_f(doc['baseline_fps'], '.1f')}, cv-gyro@1 {_f(doc['baseline_gyro_fps'], '.1f')}",
+        f"  estimation speedup (baseline / OWL): cv-5pt@1 "
+        f"{_f(doc['estimation_speedup'])}x, cv-gyro@1 {_f(doc['estimation_speedup_gyro'])}x",
         "",
-        "pooled over the static scenarios (heading deg median/p90, r/|t| median/p90; 'same' ="
-        " the scenarios that also have a bias row):",
+        "pooled over the static synthetic scenarios (heading deg median/p90, r/|t| "
+        "median/p90; 'same' = the scenarios that also have a bias row; a baseline family at "
+        "each case's best gap, 'best' = each case's best baseline):",
     ]
     rows = (
         ("no bias, all", ""),
         ("no bias, same", "_nobias_matched"),
         (f"bias {BIAS:g} rad/s", "_bias"),
     )
+    names = (
+        ("OWL", "owl"),
+        ("cv-5pt", "baseline"),
+        ("cv-gyro", "baseline_gyro"),
+        ("best", "baseline_best"),
+    )
     for label, suffix in rows:
-        for name, prefix in (("OWL", "owl"), ("cv-5pt", "baseline"), ("cv-gyro", "baseline_gyro")):
+        for name, prefix in names:
             h50 = doc.get(f"{prefix}_heading_deg_median{suffix}")
             if h50 is None and doc.get(f"{prefix}_range_rel_median{suffix}") is None:
                 continue
@@ -540,7 +861,7 @@ def report_lines(doc: dict[str, Any]) -> list[str]:
                 f"{_f(r50, '.1%')}/{_f(r90, '.1%')}"
             )
     lines += [
-        f"  ratios OWL / cv-5pt: heading {_f(doc['heading_ratio'])}, r/|t| "
+        f"  ratios OWL / best baseline: heading {_f(doc['heading_ratio'])}, r/|t| "
         f"{_f(doc['range_ratio'])}",
         "",
         f"peak memory (max RSS, rendering included): {doc['peak_rss_mb']:.0f} MB, of which "
@@ -549,6 +870,119 @@ def report_lines(doc: dict[str, Any]) -> list[str]:
         f"wall time {doc['wall_s']:.0f} s",
     ]
     return lines
+
+
+# ------------------------------------------------------------------------ real bags
+
+#: Topics of the standard bag layout (owl_make_bag, owl_import).
+BAG_TOPICS = {
+    "image": "/camera/image_raw",
+    "camera_info": "/camera/camera_info",
+    "imu": "/imu/data",
+    "tf": "/tf_static",
+    "twist": "/ground_truth/twist",
+    "range": "/ground_truth/range",
+    "mask": "/ground_truth/moving_mask",
+}
+
+
+def bag_source(path: str | Path) -> Source:
+    """A recorded or imported bag in the standard layout as a :class:`Source`.
+
+    Reads camera_info, the IMU, /tf_static (camera -> IMU rotation, as ``owl_process``
+    takes it) and /ground_truth/twist in one pass; the images (sensor_msgs/Image or
+    CompressedImage) stream in a second pass, paired with the twist by header stamp.
+    /ground_truth/range and /ground_truth/moving_mask are used when present; without a
+    range, r/|t| is not scored ("n/a"). Frames without a twist are skipped. The true gyro
+    bias is taken from ``owl_make_bag``'s metadata when present (else not scored).
+
+    Raises:
+        BagError: not a bag, or a required topic missing.
+    """
+    from rclpy.serialization import deserialize_message
+
+    from msg_adapters.camera_info import camera_info_to_model
+    from msg_adapters.image import compressed_to_frame, image_to_array, image_to_frame
+    from msg_adapters.imu import imus_to_gyro
+    from msg_adapters.msgtypes import message_class
+    from msg_adapters.stamps import header_to_ns
+    from owl_ros.process import tf_rotation
+    from owl_ros.tools.evaluate import truth_info
+
+    with BagReader(path) as bag:
+        topics = bag.topics
+        have = ", ".join(sorted(topics)) or "no topics"
+        for role in ("image", "camera_info", "imu", "twist"):
+            if BAG_TOPICS[role] not in topics:
+                raise BagError(f"bag {path} has no {BAG_TOPICS[role]} (has: {have})")
+
+        def decode(raw: RawMessage) -> Any:
+            return deserialize_message(raw.data, message_class(raw.msgtype))
+
+        small = [BAG_TOPICS[k] for k in ("camera_info", "imu", "twist")]
+        if BAG_TOPICS["tf"] in topics:
+            small.append(BAG_TOPICS["tf"])
+        info = None
+        imus: list[Any] = []
+        twists: dict[int, npt.NDArray[np.float64]] = {}
+        transforms: list[Any] = []
+        for raw in bag.messages(small):
+            if raw.topic == BAG_TOPICS["tf"]:
+                transforms.extend(bag.deserialize(raw).transforms)
+                continue
+            msg = decode(raw)
+            if raw.topic == BAG_TOPICS["camera_info"]:
+                info = info or msg
+            elif raw.topic == BAG_TOPICS["imu"]:
+                imus.append(msg)
+            else:
+                lin = msg.twist.linear
+                twists[header_to_ns(msg.header)] = np.array([lin.x, lin.y, lin.z])
+        if info is None or not imus:
+            raise BagError(f"bag {path}: no camera_info or no IMU message")
+        camera = camera_info_to_model(info)
+        imu_frame = imus[0].header.frame_id
+        rot = tf_rotation(transforms, imu_frame, info.header.frame_id) or (0.0, 0.0, 0.0, 1.0)
+        gyro = imus_to_gyro(imus)
+        del imus
+        count = topics[BAG_TOPICS["image"]].count
+        has_range = BAG_TOPICS["range"] in topics
+        has_mask = BAG_TOPICS["mask"] in topics
+    meta = truth_info(path)
+    truth_bias = np.asarray(meta["gyro_bias"], dtype=np.float64) if "gyro_bias" in meta else None
+    shape = (camera.height, camera.width)
+    no_range = np.full(shape, np.nan, dtype=np.float32)
+
+    def frames() -> Iterator[tuple[int, npt.NDArray[np.uint8], Truth]]:
+        read = [BAG_TOPICS["image"]]
+        read += [BAG_TOPICS[k] for k, ok in (("range", has_range), ("mask", has_mask)) if ok]
+        pending: dict[int, dict[str, Any]] = {}
+        need = 1 + int(has_range) + int(has_mask)
+        with BagReader(path) as bag:
+            for raw in bag.messages(read):
+                msg = decode(raw)
+                stamp = header_to_ns(msg.header)
+                slot = pending.setdefault(stamp, {})
+                if raw.topic == BAG_TOPICS["range"]:
+                    slot["range"] = image_to_array(msg).astype(np.float32)
+                elif raw.topic == BAG_TOPICS["mask"]:
+                    slot["mask"] = image_to_array(msg) > 0
+                elif raw.msgtype.endswith("CompressedImage"):
+                    slot["image"] = compressed_to_frame(msg).image
+                else:
+                    slot["image"] = image_to_frame(msg).image
+                if len(slot) < need:
+                    continue
+                del pending[stamp]
+                for old in [s for s in pending if s < stamp - 1_000_000_000]:
+                    del pending[old]  # an image whose truth never came
+                if stamp not in twists:
+                    continue
+                truth = Truth(stamp, twists[stamp], slot.get("range", no_range), slot.get("mask"))
+                yield stamp, np.asarray(slot["image"], dtype=np.uint8), truth
+
+    n = sum(1 for s in twists)  # frames with truth (upper bound of those yielded)
+    return Source(camera, rot, 0.0, gyro, truth_bias, has_mask, frames, min(n, count))
 
 
 # ------------------------------------------------------------------------ CLI
@@ -568,6 +1002,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--cases",
         default=None,
         help="comma-separated cases to run, e.g. street,street+bias (default: the profile's)",
+    )
+    p.add_argument(
+        "--bag",
+        action="append",
+        default=[],
+        metavar="BAG",
+        help="a recorded or imported bag in the standard layout with /ground_truth/twist "
+        "(repeatable); only the bags run unless --cases is given too",
     )
     p.add_argument("--seconds", type=float, default=None, help="override seconds per case")
     p.add_argument(
@@ -591,15 +1033,40 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def parse_case(item: str) -> Case:
+    """A case from its label: ``NAME[@RATEhz][+IMU][+EFFECT]...[+bias]``, e.g.
+    ``car@10hz+mems200+blur+jpeg`` (IMU one of :data:`bags.sim.sensors.IMU_MODELS`, effects of
+    :data:`EFFECTS`; ``car`` runs :data:`CAR_SECONDS`)."""
+    head, *extras = item.strip().split("+")
+    name, _, rate_text = head.partition("@")
+    scenarios.get(name)  # ScenarioError names the known ones
+    rate = 0.0
+    if rate_text:
+        try:
+            rate = float(rate_text.lower().removesuffix("hz"))
+        except ValueError:
+            rate = -1.0
+        if not (math.isfinite(rate) and rate > 0):
+            raise BenchError(f"case {item!r}: the rate must be like @10hz, got {rate_text!r}")
+    imu = ""
+    effects: list[str] = []
+    bias = 0.0
+    for x in extras:
+        if x == "bias":
+            bias = BIAS
+        elif x in IMU_MODELS and not imu:
+            imu = x
+        elif x in EFFECTS and x not in effects:
+            effects.append(x)
+        else:
+            known = ", ".join(("bias", *IMU_MODELS, *EFFECTS))
+            raise BenchError(f"case {item!r}: unknown suffix {x!r} (known: {known})")
+    seconds = CAR_SECONDS if name == "car" else 0.0
+    return Case(name, bias, "", rate, seconds, imu, tuple(effects))
+
+
 def _parse_cases(text: str) -> tuple[Case, ...]:
-    out = []
-    for item in text.split(","):
-        name, _, extra = item.strip().partition("+")
-        if extra not in ("", "bias"):
-            raise BenchError(f"case {item!r}: only the suffix '+bias' is known")
-        scenarios.get(name)  # ScenarioError names the known ones
-        out.append(Case(name, BIAS if extra else 0.0))
-    return tuple(out)
+    return tuple(parse_case(item) for item in text.split(","))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -612,8 +1079,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     profile = replace(QUICK if args.quick else FULL, clock=args.clock)
     try:
-        if args.cases:
-            profile = replace(profile, cases=_parse_cases(args.cases))
+        cases = _parse_cases(args.cases) if args.cases else ()
+        for bag in args.bag:
+            if not Path(bag).exists():
+                raise BenchError(f"--bag {bag}: no such file or directory")
+        bags = tuple(Case("bag", 0.0, str(b)) for b in args.bag)
+        if cases or bags:
+            profile = replace(profile, cases=cases + bags)
         if args.seconds is not None:
             if not (math.isfinite(args.seconds) and args.seconds > 0):
                 raise BenchError(f"--seconds must be positive, got {args.seconds}")
@@ -630,7 +1102,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         cache = None if args.no_cache else Path(args.cache_dir or user_cache_dir("frames"))
         log(f"frame cache: {cache}" if cache is not None else "frame cache: off")
         doc = run_bench(profile, cache, log)
-    except (ToolError, BagError, OwlError, OSError) as err:
+    except (ToolError, BagError, OwlError, OSError, EvalError) as err:
         print(f"{PROG}: error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

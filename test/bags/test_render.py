@@ -203,3 +203,21 @@ def test_texture_pyramid_and_bad_options() -> None:
         Renderer(_camera(), encoding="bgr16")
     with pytest.raises(ScenarioError, match="positive size"):
         box((0, 0, 0), (1, 0, 1), 3)
+
+
+def test_camera_effects_blur_gain_and_noise() -> None:
+    from bags.sim.render import apply_gain, exposure_blur, sensor_noise
+
+    a = np.full((4, 5), 10, dtype=np.uint8)
+    b = np.full((4, 5), 21, dtype=np.uint8)
+    np.testing.assert_array_equal(
+        exposure_blur([a, b]), np.full((4, 5), 16)
+    )  # 15.5 rounds to even
+    np.testing.assert_array_equal(apply_gain(b, 1.5), np.full((4, 5), 32))
+    assert int(apply_gain(np.full((1, 1), 200, dtype=np.uint8), 2.0)[0, 0]) == 255
+    flat = np.full((200, 200), 100, dtype=np.uint8)
+    noisy = sensor_noise(flat, np.random.default_rng(0), read_sigma=1.5, shot_gain=0.04)
+    # variance read^2 + gain * I = 2.25 + 4 = 6.25 (plus 1/12 of rounding)
+    assert np.var(noisy.astype(float)) == pytest.approx(6.25 + 1 / 12, rel=0.05)
+    with pytest.raises(ScenarioError):
+        apply_gain(a, 0.0)

@@ -34,6 +34,9 @@ def test_listing_and_unknown_name() -> None:
         "handheld",
         "still",
         "receding",
+        "car",
+        "sideways",
+        "slow_start",
     }
     assert set(scenarios.names()) == expected
     assert all(
@@ -218,3 +221,55 @@ def test_ground_truth_twist_conventions() -> None:
     np.testing.assert_allclose(v, [-0.15, 0.0, 1.0], atol=1e-12)
     with pytest.raises(ScenarioError, match="frame index"):
         cube.frame(99)
+
+
+def test_car_camera_ahead_of_the_axle_swings_off_the_car_axis_in_turns() -> None:
+    """The camera 1.5 m ahead of the rear axle moves at v_axle + lever * yaw' * left: its
+    heading leaves the car's axis by atan(lever yaw' / speed)."""
+    sim = scenarios.get("car").simulate(replace(SMALL, seconds=8.0))
+    t = np.array([0.0, 1.0, 2.0, 4.0])
+    st = sim.trajectory.state(t)
+    speed = np.array([1.0, 4.5 - 3.5 * math.cos(math.pi / 4), 4.5, 8.0])
+    yaw_rate = 0.6 * np.sin(2 * math.pi * t / 4.0)
+    yaw = np.arctan2(st.R_wb[:, 1, 0], st.R_wb[:, 0, 0])
+    fwd = np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
+    left = np.stack([-np.sin(yaw), np.cos(yaw)], axis=1)
+    np.testing.assert_allclose(np.einsum("ni,ni->n", st.velocity[:, :2], fwd), speed, atol=1e-9)
+    np.testing.assert_allclose(
+        np.einsum("ni,ni->n", st.velocity[:, :2], left), 1.5 * yaw_rate, atol=1e-9
+    )
+    np.testing.assert_allclose(st.omega_b[:, 2], yaw_rate, atol=1e-12)
+    # the axle (camera minus the lever) moves along the car's axis: no side slip
+    axle = st.position[:, :2] - 1.5 * fwd
+    h = 1e-4
+    sp, sm = sim.trajectory.state(t + h), sim.trajectory.state(t - h)
+
+    def axle_at(s):
+        y = np.arctan2(s.R_wb[:, 1, 0], s.R_wb[:, 0, 0])
+        return s.position[:, :2] - 1.5 * np.stack([np.cos(y), np.sin(y)], axis=1)
+
+    v_axle = (axle_at(sp) - axle_at(sm)) / (2 * h)
+    np.testing.assert_allclose(np.einsum("ni,ni->n", v_axle, left), 0.0, atol=1e-6)
+    assert axle.shape == (4, 2)
+
+
+def test_sideways_rotation_starts_and_stops() -> None:
+    sim = scenarios.get("sideways").simulate(replace(SMALL, seconds=3.0))
+    st = sim.trajectory.state(np.array([0.5, 0.99, 1.5, 2.01, 2.5]))
+    np.testing.assert_allclose(st.omega_b[:, 2], [0.0, 0.0, 0.4, 0.0, 0.0], atol=1e-3)
+    # total yaw = mean rate x duration = 0.2 rad
+    end = sim.trajectory.state(np.array([3.0]))
+    assert math.atan2(end.R_wb[0, 1, 0], end.R_wb[0, 0, 0]) == pytest.approx(0.2, abs=1e-12)
+
+
+def test_imu_models_per_sample_noise_follows_the_density() -> None:
+    from bags.sim.sensors import IMU_MODELS
+
+    adis = IMU_MODELS["adis16448"]
+    assert adis.rate_hz == 200.0
+    assert adis.gyro_noise == pytest.approx(1.6968e-4 * math.sqrt(200.0))
+    mems = IMU_MODELS["mems400"]
+    assert mems.gyro_noise == pytest.approx(math.radians(0.014) * 20.0)
+    sim = scenarios.get("still").simulate(replace(SMALL, seconds=2.0, imu=mems))
+    noise = sim.imu.angular_velocity - sim.imu.true_angular_velocity - sim.imu.gyro_bias
+    assert np.std(noise) == pytest.approx(mems.gyro_noise, rel=0.05)  # 2400 samples

@@ -221,3 +221,26 @@ def test_bias_filter_gate_rejects_outliers() -> None:
     np.testing.assert_array_equal(filt.bias, 0.0)
     assert filt.update(np.array([0.001, 0.0, 0.0]), prior * 0.5, prior)
     assert filt.bias[0] < 0  # true bias = bias - delta
+
+
+def test_bias_observability_gate_leaves_an_unobserved_direction_put() -> None:
+    """A frame that pins the rotation about x and y (sigma 1e-4 rad/s) but not about z
+    (sigma 0.0095 rad/s, barely below the prior's 0.01): with max_sigma = 0.003 only x and y
+    move; without the gate z moves too."""
+    from owl_core.heading import GyroBiasFilter
+
+    prior = np.eye(3) * 1e-4
+    post = np.diag([1e-8, 1e-8, 0.9e-4])
+    delta = np.array([0.001, 0.002, 0.005])
+    gated = GyroBiasFilter(initial_sigma=0.01)
+    assert gated.update(delta, post, prior, 1.0, max_sigma=0.003)
+    assert gated.bias[2] == 0.0
+    # x, y: the state (sigma 0.01) and the frame (info 1e8 - 1e4) fuse: bias -> -delta
+    np.testing.assert_allclose(gated.bias[:2], -delta[:2], rtol=1e-3)
+    free = GyroBiasFilter(initial_sigma=0.01)
+    assert free.update(delta, post, prior, 1.0)
+    assert free.bias[2] < -1e-4
+    # nothing observable enough: no update at all
+    none = GyroBiasFilter(initial_sigma=0.01)
+    assert not none.update(delta, post, prior, 1.0, max_sigma=1e-6)
+    np.testing.assert_array_equal(none.bias, 0.0)

@@ -44,7 +44,10 @@ def test_json_schema(tiny):
     assert 0 < doc["features_per_frame"] <= TINY.features
     assert [c["case"] for c in doc["cases"]] == ["street", "street+bias"]
     for c in doc["cases"]:
-        assert set(c["methods"]) == {"owl", "cv-5pt", "cv-gyro"}
+        assert set(c["methods"]) == set(bench.METHODS)
+        assert {"cv-5pt@1", "cv-5pt@2", "cv-5pt@4", "cv-gyro@1", "cv-gyro@4"} <= set(c["methods"])
+        assert c["best"]["cv-5pt"].startswith("cv-5pt@")
+        assert c["best"]["heading"] in c["methods"]
         assert c["frames"] == 13
         assert {"track", "total"} <= set(c["owl_stage_ms_per_frame"])
     # biased rows are reported separately
@@ -79,7 +82,7 @@ def test_bench_scores_are_owl_eval_scores_and_a_wrong_heading_shows_exactly():
     ]
     assert summarize(scores, False)["heading_deg_median"] == row["owl"]["heading_deg_median"]
     # a heading rotated by 7 degrees about an axis perpendicular to the truth scores 7 degrees
-    for k, r in enumerate(run.baseline_results["cv-5pt"]):
+    for k, r in enumerate(run.baseline_results["cv-5pt@4"]):
         v = frames.velocity[k]
         axis = np.cross(v, [1.0, 0.0, 0.0])
         wrong = so3_exp(axis / np.linalg.norm(axis) * math.radians(7.0)) @ v
@@ -104,6 +107,75 @@ def test_cli_json_and_errors(capsys, tmp_path):
     assert bench.main(["--quick", "--features", "0", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--features" in err and "0" in err
+
+
+def test_best_baseline_is_the_lowest_heading_median_and_owl_is_judged_against_every_gap():
+    def row(h50, h90, r50, r90):
+        return {
+            "translating_frames": 10,
+            "false_heading_frames": 0,
+            "heading_availability": 1.0,
+            "heading_deg_median": h50,
+            "heading_deg_p90": h90,
+            "range_rel_median": r50,
+            "range_rel_p90": r90,
+        }
+
+    methods = {m: row(1.0, 2.0, 0.05, 0.2) for m in bench.METHODS}
+    methods["cv-5pt@2"] = row(0.3, 0.9, 0.04, 0.3)
+    methods["cv-gyro@1"] = row(0.4, 0.5, 0.03, 0.1)
+    methods["owl"] = row(0.35, 0.6, 0.02, 0.1)
+    best = bench.best_baselines(methods)
+    assert best["cv-5pt"] == "cv-5pt@2" and best["cv-gyro"] == "cv-gyro@1"
+    assert best["heading"] == "cv-5pt@2" and best["range"] == "cv-gyro@1"
+    # OWL's median beats cv-gyro@1's but not cv-5pt@2's; its p90 beats both: not ok
+    assert best["owl_heading_ok"] is False
+    assert best["owl_range_ok"] is True
+    methods["owl"] = row(0.3, 0.5, 0.03, 0.11)
+    best = bench.best_baselines(methods)
+    assert best["owl_heading_ok"] is True and best["owl_range_ok"] is False
+
+
+def test_bag_source_scores_exactly_as_the_in_memory_frames(tmp_path):
+    from bags.cli.make_bag import main as make_bag
+
+    bag = tmp_path / "street"
+    argv = ["street", str(bag), "--seconds", "0.4", "--width", "160", "--height", "120"]
+    assert make_bag([*argv, "--quiet"]) == 0
+    case = bench.Case("street")
+    sim = bench._sim(case, TINY)
+    mem = bench.case_report(bench.run_case(case, TINY, bench.load_frames(sim, None), sim))
+    src = bench.bag_source(bag)
+    assert src.num_frames == 13
+    from_bag = bench.case_report(bench.run_source(bench.Case("bag", 0.0, str(bag)), TINY, src))
+    for m in bench.METHODS:
+        a, b = mem["methods"][m], from_bag["methods"][m]
+        for key in ("heading_deg_median", "heading_deg_p90", "range_rel_median", "frames"):
+            assert a[key] == b[key], (m, key)
+    assert bench.main(["--bag", str(tmp_path / "nothing"), "--quiet"]) == 2
+
+
+def test_case_labels_parse_back_and_unknown_suffixes_are_refused():
+    for case in bench.FULL.cases + bench.QUICK.cases:
+        assert bench.parse_case(case.label) == case
+    c = bench.parse_case("street@20hz+adis16448+jitter+bias")
+    assert (c.rate_hz, c.imu, c.effects, c.bias) == (20.0, "adis16448", ("jitter",), bench.BIAS)
+    with pytest.raises(bench.BenchError, match="unknown suffix 'fog'"):
+        bench.parse_case("street+fog")
+    with pytest.raises(bench.BenchError, match="rate"):
+        bench.parse_case("street@fasthz")
+
+
+def test_effect_times_are_uneven_and_drop_frames_deterministically():
+    case = bench.parse_case("street+jitter+drop")
+    sim = bench._sim(case, TINY)
+    t = bench.effect_times(case, sim)
+    again = bench.effect_times(case, sim)
+    np.testing.assert_array_equal(t, again)
+    n = sim.options.num_frames
+    assert t.size < n and t[0] == 0.0 and np.all(np.diff(t) > 0)
+    gaps = np.diff(t) * sim.options.rate_hz  # in frame periods
+    assert gaps.max() > 1.5 or np.ptp(gaps) > 0.3  # uneven / a drop
 
 
 def test_cache_goes_to_the_user_cache_dir_and_is_named(tmp_path, monkeypatch, capsys):

@@ -426,7 +426,7 @@ def test_runtime_parameters_qos_events_and_time_jump(
         bad = collector.set_parameter("camera_to_imu_rotation_xyzw", [0.0, 0.0, 1.0])
         assert not bad.successful
         assert "camera_to_imu_rotation_xyzw: must have 4 elements" in bad.reason
-        bad = collector.set_parameter("min_track_frames", 9)  # > fit_frames
+        bad = collector.set_parameter("min_track_frames", 11)  # > fit_frames (10)
         assert not bad.successful and "min_track_frames" in bad.reason
         ro = collector.set_parameter("image_transport", "compressed")
         assert not ro.successful and "read-only" in ro.reason.lower()

@@ -69,7 +69,7 @@ def test_every_table_entry_is_consistent() -> None:
         ({"image_transport": "theora"}, "parameter image_transport: must be one of raw, "),
         ({"max_features": 1.5}, "parameter max_features: must be an integer, got 1.5"),
         ({"require_gyro": "yes"}, "parameter require_gyro: must be true or false, got 'yes'"),
-        ({"min_track_frames": 7}, "parameter min_track_frames: min_track_frames (7) must not"),
+        ({"min_track_frames": 11}, "parameter min_track_frames: min_track_frames (11) must not"),
         ({"tracker_lk_window_px": 8}, "parameter tracker_lk_window_px: TrackerOptions."),
         ({"no_such_thing": 1}, "parameter no_such_thing: unknown parameter"),
     ],

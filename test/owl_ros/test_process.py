@@ -85,8 +85,9 @@ def test_output_readable_with_contract_fields_and_headers(
     assert all(t == header_to_ns(m.header) for t, _, m in clouds)
     assert {m.header.frame_id for _, _, m in clouds} == {"camera_optical_frame"}
     full = [m for _, _, m in clouds if m.width > 0]
-    # min_track_frames (5): every frame after the first four has points
-    assert len(full) == len(stamps) - 4 == summary.frames_with_points
+    # a 0.15 s fit window (5 frames at 30 Hz), shorter while the tracks are young: every
+    # frame after the first has points
+    assert len(full) == len(stamps) - 1 == summary.frames_with_points
     for m in full:
         assert [f.name for f in m.fields] == [name for name, _, _ in OWL_FIELDS]
         assert m.height == 1 and m.row_step == m.width * m.point_step and m.is_dense
