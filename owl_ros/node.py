@@ -246,9 +246,15 @@ class OwlNode(Node):
                     + node_report.extrinsic_warning(tf_available=True)
                 )
             return
-        self._tf = None
-        options = self.options.with_values({"camera_to_imu_rotation_xyzw": found})
-        self.options = options
+        with self._lock:
+            if self._tf is None:  # the parameter was set meanwhile: it wins
+                return
+            self._tf = None
+            # into the parameter values too, so that a later parameter change keeps it
+            values = {**self._values, "camera_to_imu_rotation_xyzw": list(found)}
+            options = build_options(values)
+            self._values = values
+            self.options = options
         self._inbox.put("options", options, time.monotonic_ns())
         self.get_logger().info(
             f"camera_to_imu_rotation_xyzw {list(found)} from TF ({imu} -> {cam})"
@@ -327,6 +333,8 @@ class OwlNode(Node):
                 return SetParametersResult(successful=False, reason="; ".join(err.lines))
             self._values = merged
             self.options = options
+            if "camera_to_imu_rotation_xyzw" in known:
+                self._tf = None  # the parameter overrides TF
         self._inbox.put("options", options, time.monotonic_ns())
         return SetParametersResult(successful=True)
 
