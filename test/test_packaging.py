@@ -149,9 +149,21 @@ ROSDEP_KEYS = {
     "scipy": "python3-scipy",
     "yaml": "python3-yaml",
     "matplotlib": "python3-matplotlib",
+    "tf2_ros": "tf2_ros_py",
 }
-#: pip-only (no rosdep key): these must be pinned in requirements/python.txt instead.
-PIP_ONLY = {"rosbags": "rosbags", "mcap": "mcap", "ray": "ray", "threadpoolctl": "threadpoolctl"}
+#: pip-only (no rosdep key): these must be pinned in requirements/python.txt instead. The
+#: zstd codecs bags.io catches errors of are the ones rosbags (``backports.zstd``, the
+#: standard library's ``compression.zstd`` from Python 3.14) and mcap (``zstandard``)
+#: install and use for MCAP chunks: they come with those pins.
+PIP_ONLY = {
+    "rosbags": "rosbags",
+    "mcap": "mcap",
+    "ray": "ray",
+    "threadpoolctl": "threadpoolctl",
+    "backports": "rosbags",
+    "compression": "rosbags",
+    "zstandard": "mcap",
+}
 
 
 def test_every_imported_third_party_package_is_declared() -> None:
