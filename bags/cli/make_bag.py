@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import TwistStamped
 
+from bags import layout
 from bags.cli import OneLineErrorParser
 from bags.errors import BagError, ScenarioError
 from bags.io import BagWriter, typestore
@@ -56,15 +57,8 @@ PROG = "owl_make_bag"
 #: A moderate barrel distortion for ``--distortion barrel`` (plumb_bob k1 k2 p1 p2 k3).
 BARREL = (-0.25, 0.07, 0.0005, -0.0003, 0.0)
 
-TOPICS = {
-    "image": ("/camera/image_raw", "sensor_msgs/msg/Image", "sensor"),
-    "info": ("/camera/camera_info", "sensor_msgs/msg/CameraInfo", "sensor"),
-    "imu": ("/imu/data", "sensor_msgs/msg/Imu", "sensor"),
-    "tf": ("/tf_static", "tf2_msgs/msg/TFMessage", "latched"),
-    "twist": ("/ground_truth/twist", "geometry_msgs/msg/TwistStamped", "reliable"),
-    "range": ("/ground_truth/range", "sensor_msgs/msg/Image", "reliable"),
-    "mask": ("/ground_truth/moving_mask", "sensor_msgs/msg/Image", "reliable"),
-}
+#: The synthetic bag's topics (the standard layout without the gyro-bias truth).
+TOPICS = layout.subset("image", "info", "imu", "tf", "twist", "range", "mask")
 
 
 def _floats(text: str, name: str, sizes: tuple[int, ...]) -> tuple[float, ...]:

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
+from bags import layout
 from bags.errors import ScenarioError
 from bags.sim.render import Rect, Renderer, box, exposure_blur
 from bags.sim.sensors import (
@@ -56,8 +57,8 @@ F64 = npt.NDArray[np.float64]
 
 #: Camera stamp of scenario time 0 (2023-11-14T22:13:20Z), ns.
 DEFAULT_START_NS = 1_700_000_000_000_000_000
-CAMERA_FRAME = "camera_optical_frame"
-IMU_FRAME = "imu_link"
+CAMERA_FRAME = layout.CAMERA_FRAME
+IMU_FRAME = layout.IMU_FRAME
 CAMERA_HEIGHT = 1.5
 
 

@@ -53,6 +53,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from bags import layout
 from bags.cli import OneLineErrorParser, user_cache_dir
 from bags.errors import BagError
 from bags.io import BagReader, RawMessage
@@ -300,6 +301,21 @@ def _cache_key(sim: Simulation, effects: tuple[str, ...] = ()) -> str:
         *effects,
     ]
     return "_".join(parts)
+
+
+def sim_engine(sim: Simulation, **options: Any) -> OwlEngine:
+    """An engine for a rendered simulation: its camera, extrinsic and IMU time offset
+    (``options``: any further :class:`EngineOptions`), with the simulation's gyro added."""
+    engine = OwlEngine(
+        sim.options.camera(),
+        EngineOptions(
+            camera_to_imu_rotation_xyzw=sim.camera_to_imu_xyzw,
+            imu_time_offset_s=sim.imu_time_offset_ns * 1e-9,
+            **options,
+        ),
+    )
+    engine.add_gyro(sim.gyro_samples())
+    return engine
 
 
 def load_frames(
@@ -876,13 +892,8 @@ def report_lines(doc: dict[str, Any]) -> list[str]:
 
 #: Topics of the standard bag layout (owl_make_bag, owl_import).
 BAG_TOPICS = {
-    "image": "/camera/image_raw",
-    "camera_info": "/camera/camera_info",
-    "imu": "/imu/data",
-    "tf": "/tf_static",
-    "twist": "/ground_truth/twist",
-    "range": "/ground_truth/range",
-    "mask": "/ground_truth/moving_mask",
+    "camera_info" if role == "info" else role: layout.TOPICS[role][0]
+    for role in ("image", "info", "imu", "tf", "twist", "range", "mask")
 }
 
 

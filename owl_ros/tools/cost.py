@@ -20,7 +20,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from owl_core.engine import EngineOptions, OwlEngine
 from owl_core.types import ImageFrame
 from owl_ros.tools import bench
 from owl_ros.tools.threads import one_thread
@@ -37,16 +36,8 @@ def measure(
     case = bench.Case(scenario)
     sim = bench._sim(case, profile)
     frames = bench.load_frames(sim, cache)
-    engine = OwlEngine(
-        sim.camera,
-        EngineOptions(
-            camera_to_imu_rotation_xyzw=sim.camera_to_imu_xyzw,
-            imu_time_offset_s=sim.imu_time_offset_ns * 1e-9,
-            max_features=features,
-        ),
-    )
+    engine = bench.sim_engine(sim, max_features=features)
     engine.clock = time.process_time
-    engine.add_gyro(sim.gyro_samples())
     sums = dict.fromkeys(STAGES, 0.0)
     tracks = 0
     n = int(frames.stamps_ns.size)

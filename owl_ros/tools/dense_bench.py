@@ -42,7 +42,7 @@ from owl_core.dense import DenseOptions, DenseOwl, DenseResult
 from owl_core.engine import EngineOptions, OwlEngine
 from owl_core.geometry import matrix_to_quat_xyzw
 from owl_core.types import GyroSamples, ImageFrame
-from owl_ros.tools.bench import load_frames
+from owl_ros.tools.bench import load_frames, sim_engine
 from owl_ros.tools.threads import one_thread
 
 STATIC = ("cube", "scaled", "accel", "turn", "street", "receding")
@@ -67,14 +67,7 @@ def _engine_pass(case: str, seconds: float, cache: Path | None) -> tuple[Any, li
     sim = scenarios.get(case).simulate(SimOptions(seconds=seconds, width=640, height=480))
     frames = load_frames(sim, cache)
     cam = sim.options.camera()
-    eng = OwlEngine(
-        cam,
-        EngineOptions(
-            camera_to_imu_rotation_xyzw=sim.camera_to_imu_xyzw,
-            imu_time_offset_s=sim.imu_time_offset_ns * 1e-9,
-        ),
-    )
-    eng.add_gyro(sim.gyro_samples())
+    eng = sim_engine(sim)
     out = []
     for k in range(frames.images.shape[0]):
         stamp = int(frames.stamps_ns[k])
@@ -347,14 +340,7 @@ def dense_figure(sim: Any, frames: Any, path: Path, frame: int | None = None) ->
     import matplotlib.pyplot as plt
 
     cam = sim.options.camera()
-    eng = OwlEngine(
-        cam,
-        EngineOptions(
-            camera_to_imu_rotation_xyzw=sim.camera_to_imu_xyzw,
-            imu_time_offset_s=sim.imu_time_offset_ns * 1e-9,
-        ),
-    )
-    eng.add_gyro(sim.gyro_samples())
+    eng = sim_engine(sim)
     # the benchmark's 320x240 from VGA; smaller inputs at their own size
     div = 2 if cam.width >= 640 and cam.height >= 480 else 1
     dense = DenseOwl(cam, DenseOptions(width=cam.width // div, height=cam.height // div))

@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from bags import layout
 from bags.cli import OneLineErrorParser
 from bags.errors import BagError
 from bags.io import BagReader
@@ -64,13 +65,8 @@ MIN_SPEED = 1e-3
 #: Coverage grid (columns, rows) over the image.
 GRID = (16, 12)
 MOVING_BIT = 4
-TRUTH_TOPICS = {
-    "twist": "/ground_truth/twist",
-    "range": "/ground_truth/range",
-    "mask": "/ground_truth/moving_mask",
-    "bias": "/ground_truth/gyro_bias",
-}
-CAMERA_INFO_TOPIC = "/camera/camera_info"
+TRUTH_TOPICS = {role: layout.TOPICS[role][0] for role in ("twist", "range", "mask", "bias")}
+CAMERA_INFO_TOPIC = layout.TOPICS["info"][0]
 NO_RANGE = "not scored: no range ground truth"
 #: Result topics as owl_process writes them, then as a recording may name them.
 POINTS_TOPICS = (POINTS.bag, POINTS.name)

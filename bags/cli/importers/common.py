@@ -46,9 +46,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from bags import layout
 from bags.errors import BagError
 from bags.io import BagWriter, typestore
-from bags.sim.scenarios import CAMERA_FRAME, IMU_FRAME
+from bags.layout import CAMERA_FRAME, IMU_FRAME
 from owl_core.camera import CameraModel
 from owl_core.geometry import matrix_to_quat_xyzw, so3_exp, so3_log
 
@@ -57,15 +58,8 @@ I64 = npt.NDArray[np.int64]
 
 PROG = "owl_import"
 
-#: Topics, types and QoS names: those of the synthetic bags (bags.cli.make_bag.TOPICS).
-TOPICS = {
-    "image": ("/camera/image_raw", "sensor_msgs/msg/Image", "sensor"),
-    "info": ("/camera/camera_info", "sensor_msgs/msg/CameraInfo", "sensor"),
-    "imu": ("/imu/data", "sensor_msgs/msg/Imu", "sensor"),
-    "tf": ("/tf_static", "tf2_msgs/msg/TFMessage", "latched"),
-    "twist": ("/ground_truth/twist", "geometry_msgs/msg/TwistStamped", "reliable"),
-    "bias": ("/ground_truth/gyro_bias", "geometry_msgs/msg/Vector3Stamped", "reliable"),
-}
+#: Topics, types and QoS names: the standard layout's inputs and the truth a dataset has.
+TOPICS = layout.subset("image", "info", "imu", "tf", "twist", "bias")
 
 
 class DatasetError(BagError, ValueError):
