@@ -484,9 +484,16 @@ class OwlEngine:
     Args:
         camera: the camera model of the images.
         options: engine settings.
+        gyro: a gyro buffer to keep (its samples survive a rebuilt engine; its rotation
+            and offset are set from ``options``); None: a new, empty one.
     """
 
-    def __init__(self, camera: CameraModel, options: EngineOptions | None = None) -> None:
+    def __init__(
+        self,
+        camera: CameraModel,
+        options: EngineOptions | None = None,
+        gyro: GyroBuffer | None = None,
+    ) -> None:
         if not isinstance(camera, CameraModel):
             raise InvalidInputError(f"camera must be a CameraModel, got {type(camera).__name__}")
         self.camera = camera
@@ -500,10 +507,12 @@ class OwlEngine:
                 "history_len": history,
             }
         )
-        self._gyro = GyroBuffer(
-            camera_to_imu_rotation_xyzw=opts.camera_to_imu_rotation_xyzw,
-            imu_time_offset_ns=round(opts.imu_time_offset_s * 1e9),
-        )
+        offset_ns = round(opts.imu_time_offset_s * 1e9)
+        if gyro is None:
+            gyro = GyroBuffer(opts.camera_to_imu_rotation_xyzw, offset_ns)
+        else:
+            gyro.set_calibration(opts.camera_to_imu_rotation_xyzw, offset_ns)
+        self._gyro = gyro
         self._r_ci = quat_xyzw_to_matrix(
             np.asarray(opts.camera_to_imu_rotation_xyzw, dtype=np.float64)
             / np.linalg.norm(opts.camera_to_imu_rotation_xyzw)
