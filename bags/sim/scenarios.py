@@ -526,9 +526,9 @@ def _car_yaw(t: F64) -> tuple[F64, F64, F64]:
     return -0.6 / w * np.cos(w * t), 0.6 * np.sin(w * t), 0.6 * w * np.cos(w * t)
 
 
-def _build() -> dict[str, Scenario]:
-    street = tuple(_street_scene())
-    out = [
+def _motion_scenarios(street: tuple[Rect, ...]) -> list[Scenario]:
+    """The scenarios of the paper's kinds of motion (translation, turns, movers)."""
+    return [
         Scenario(
             "cube",
             "the paper's first experiment: a textured cube (and ground) seen by a camera in "
@@ -582,6 +582,12 @@ def _build() -> dict[str, Scenario]:
             street,
             Trajectory(polynomial_path(_H, (0, 0, 0)), _street_rotation(0.3, 0.1)),
         ),
+    ]
+
+
+def _special_scenarios(street: tuple[Rect, ...]) -> list[Scenario]:
+    """Calibration recordings, a still camera, and the realistic bench motions."""
+    return [
         Scenario(
             "pan_only",
             "street, camera standing still and panning (yaw +-0.3 rad) about one axis only: "
@@ -645,7 +651,11 @@ def _build() -> dict[str, Scenario]:
             Trajectory(polynomial_path((40.0, 0.0, CAMERA_HEIGHT), (-3.0, 0.0, 0.0)), _NO_ROT),
         ),
     ]
-    return {s.name: s for s in out}
+
+
+def _build() -> dict[str, Scenario]:
+    street = tuple(_street_scene())
+    return {s.name: s for s in _motion_scenarios(street) + _special_scenarios(street)}
 
 
 _SCENARIOS = _build()
