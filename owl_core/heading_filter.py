@@ -89,7 +89,8 @@ class HeadingFilterOptions:
 
     Attributes:
         accel_density: white heading-acceleration density q, rad/s^2/sqrt(Hz): how fast
-            the rate of turn of the path may change.
+            the rate of turn of the path may change (0 with ``initial_rate_sigma`` 0: a
+            constant heading, the average of every measurement since the last restart).
         initial_rate_sigma: 1-sigma of the rate of turn at the first measurement, rad/s.
         inflation: multiplier (>= 1) of each measurement's variance (correlated
             consecutive measurements).
@@ -106,10 +107,14 @@ class HeadingFilterOptions:
     max_gap_s: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("accel_density", "initial_rate_sigma", "gate", "max_gap_s"):
+        for name in ("gate", "max_gap_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise InvalidInputError(f"{name} must be positive and finite, got {value!r}")
+        for name in ("accel_density", "initial_rate_sigma"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InvalidInputError(f"{name} must be >= 0 and finite, got {value!r}")
         if not self.inflation >= 1.0:
             raise InvalidInputError(f"inflation must be >= 1, got {self.inflation!r}")
         if self.max_rejections < 1:
@@ -251,14 +256,18 @@ class TwoModelOptions:
     """Settings of :class:`TwoModelHeading`.
 
     Attributes:
-        straight: the constant-heading model (a tiny heading acceleration and rate).
+        straight: the constant-heading model: no rate of turn, no process noise, so it
+            averages every measurement since it last restarted (a gate rejection
+            ``max_rejections`` times in a row restarts it). The frames' errors are
+            correlated over a track's life (a tracking error stays with its feature), so
+            only a long average removes them; any heading diffusion shortens it.
         turning: the model whose rate of turn may change quickly.
         memory: forgetting factor (0..1) of each model's accumulated log-likelihood per
             frame (about 1 / (1 - memory) frames are remembered).
     """
 
     straight: HeadingFilterOptions = HeadingFilterOptions(
-        accel_density=0.02, initial_rate_sigma=0.005
+        accel_density=0.0, initial_rate_sigma=0.0
     )
     turning: HeadingFilterOptions = HeadingFilterOptions()
     memory: float = 0.7
