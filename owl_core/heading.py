@@ -33,6 +33,10 @@ from owl_core.motion import cross
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
+#: Range of the robust residual scale of ``HeadingOptions.adaptive_scale``, in modelled
+#: flow-noise sigmas.
+SCALE_RANGE = (0.1, 1.0)
+
 
 @dataclass(frozen=True)
 class HeadingOptions:
@@ -54,6 +58,14 @@ class HeadingOptions:
             below this many noise sigmas (too little parallax for a heading).
         max_points: the estimate uses at most this many points (an even subsample); the
             residuals and inlier flags are still computed for every point.
+        adaptive_scale: the Cauchy scale and the final inlier gate follow the residuals'
+            own robust spread (1.4826 x their median absolute value, kept within
+            :data:`SCALE_RANGE` of the modelled noise: never wider than the model) instead
+            of the modelled flow noise alone. The model's noise is a setting
+            (``pixel_noise_px``); a tracker on a sharp texture does several times better,
+            and then a few wrong tracks (an occlusion edge, an aliased patch) sit inside a
+            gate three modelled sigmas wide and tilt the heading. The covariance still uses
+            the modelled noise.
     """
 
     ransac_hypotheses: int = 64
@@ -67,6 +79,7 @@ class HeadingOptions:
     still_ratio: float = 1.5
     min_translation_snr: float = 3.0
     max_points: int = 1000
+    adaptive_scale: bool = True
 
     def __post_init__(self) -> None:
         if self.ransac_hypotheses < 1:
@@ -213,10 +226,13 @@ def _refine(
         inv_scale = 1.0 / (sin * su)
         # raw residual h.n + tperp.delta with tperp = h - (h.e) e (d raw / d delta)
         res = (npj[:, 0] + h @ delta - cos * ed) * inv_scale
+        k = 1.0
+        if opts.adaptive_scale:
+            k = float(np.clip(1.4826 * np.median(np.abs(res)), *SCALE_RANGE))
         if it < opts.irls_iterations:
-            w = 1.0 / (1.0 + (res / opts.cauchy_sigma) ** 2)
+            w = 1.0 / (1.0 + (res / (k * opts.cauchy_sigma)) ** 2)
         else:
-            w = (np.abs(res) < opts.inlier_sigma).astype(np.float64)
+            w = (np.abs(res) < k * opts.inlier_sigma).astype(np.float64)
         # d raw / d h = n + delta - (e.delta) e, along u1 and u2
         jac[:, 0] = (npj[:, 1] + delta @ u1 - ed * ep[:, 2]) * inv_scale
         jac[:, 1] = (npj[:, 2] + delta @ u2 - ed * ep[:, 3]) * inv_scale
@@ -485,6 +501,11 @@ class GyroBiasFilter:
         initial_sigma: 1-sigma of the initial bias, rad/s per axis.
         random_walk: bias random-walk density, rad/s/sqrt(s).
         initial_bias: (3,) initial bias, IMU frame, rad/s.
+        max_rejections: that many gate rejections in a row (:meth:`update`) reopen the
+            filter: its covariance goes back to at least the initial one, its mean is
+            kept, and the next frame updates it. A bias estimate that the flow keeps
+            contradicting is wrong (e.g. a first update from a slowly translating camera
+            taken for a rotating one), and without this it would stay wrong for good.
     """
 
     def __init__(
@@ -493,6 +514,7 @@ class GyroBiasFilter:
         initial_sigma: float = 0.02,
         random_walk: float = 1e-4,
         initial_bias: npt.ArrayLike = (0.0, 0.0, 0.0),
+        max_rejections: int = 5,
     ) -> None:
         cam_to_imu = (
             np.eye(3) if camera_to_imu is None else np.asarray(camera_to_imu, dtype=np.float64)
@@ -500,6 +522,12 @@ class GyroBiasFilter:
         if cam_to_imu.shape != (3, 3):
             raise InvalidInputError(
                 f"camera_to_imu must have shape (3, 3), got {cam_to_imu.shape}"
+            )
+        if isinstance(max_rejections, bool) or not (
+            isinstance(max_rejections, int) and max_rejections >= 1
+        ):
+            raise InvalidInputError(
+                f"max_rejections must be an integer >= 1, got {max_rejections!r}"
             )
         if not initial_sigma > 0 or not random_walk >= 0:
             raise InvalidInputError(
@@ -517,6 +545,8 @@ class GyroBiasFilter:
         self.cov = np.eye(3) * initial_sigma**2
         self.updates = 0
         self.rejected = 0
+        self.rejected_in_row = 0
+        self.max_rejections = max_rejections
 
     def reset(self) -> None:
         """Back to the initial bias and uncertainty."""
@@ -524,6 +554,7 @@ class GyroBiasFilter:
         self.cov = np.eye(3) * self._initial_sigma**2
         self.updates = 0
         self.rejected = 0
+        self.rejected_in_row = 0
 
     @property
     def bias_camera(self) -> FloatArray:
@@ -566,7 +597,8 @@ class GyroBiasFilter:
             inflation: measurement-information divisor, >= 1.
             gate: innovation gate: a posterior delta whose squared Mahalanobis distance under
                 the prior exceeds this (chi-square, 3 dof; 16.3 = 99.9 %) is rejected as an
-                outlier (e.g. translation mistaken for rotation). inf disables the gate.
+                outlier (e.g. translation mistaken for rotation); ``max_rejections`` in a
+                row reopen the filter. inf disables the gate.
             max_sigma: observability gate, rad/s: only the directions of the rotation in
                 which this one frame determines it to better than ``max_sigma`` (1-sigma,
                 before ``inflation``) update the bias; the others (e.g. a rotation the
@@ -590,7 +622,14 @@ class GyroBiasFilter:
         info_prior = np.linalg.inv(p)
         if float(d @ info_prior @ d) > gate:
             self.rejected += 1
+            self.rejected_in_row += 1
+            if self.rejected_in_row < self.max_rejections:
+                return False
+            # the state keeps contradicting the flow: reopen it (keep the mean)
+            self.cov = self.cov + np.eye(3) * self._initial_sigma**2
+            self.rejected_in_row = 0
             return False
+        self.rejected_in_row = 0
         info_meas = info_post - info_prior
         vals, vecs = np.linalg.eigh(0.5 * (info_meas + info_meas.T))
         if math.isfinite(max_sigma):
