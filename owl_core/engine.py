@@ -113,6 +113,14 @@ class EngineOptions:
             their recent innovations) that bring each frame's heading to the image time
             (:mod:`owl_core.heading_filter`); None: a straight line through the last
             headings instead (the earlier finite-difference route).
+        residual_memory_s: time constant of each track's running mean coplanarity
+            residual (in flow-noise sigmas), s; None: no memory. A tracking error stays
+            with its feature for its whole life (an occlusion edge, a patch that deforms
+            or aliases), so it does not average out over frames as noise does.
+        residual_memory_sigma: a track whose running mean residual is ``m`` enters the
+            heading fit with its flow noise multiplied by ``sqrt(1 + (m / this)^2)``,
+            dimensionless (flow-noise sigmas): a persistent error is down-weighted while
+            it lasts, and a track that recovers regains its weight.
         seed: seed of the RANSAC random generator (results are deterministic).
     """
 
@@ -151,6 +159,8 @@ class EngineOptions:
     max_speed_rate: float = 5.0
     heading: hd.HeadingOptions = field(default_factory=hd.HeadingOptions)
     heading_filter: hf.TwoModelOptions | None = field(default_factory=hf.TwoModelOptions)
+    residual_memory_s: float | None = 0.3
+    residual_memory_sigma: float = 0.5
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -196,6 +206,7 @@ class EngineOptions:
             "no_gyro_rotation_sigma",
             "max_frame_gap_s",
             "quality_rel_sigma",
+            "residual_memory_sigma",
         )
         for name in positive:
             value = getattr(self, name)
@@ -210,6 +221,12 @@ class EngineOptions:
         ):
             raise InvalidInputError(
                 f"fit_window_s must be positive or None, got {self.fit_window_s!r}"
+            )
+        if self.residual_memory_s is not None and not (
+            math.isfinite(self.residual_memory_s) and self.residual_memory_s > 0
+        ):
+            raise InvalidInputError(
+                f"residual_memory_s must be positive or None, got {self.residual_memory_s!r}"
             )
         if not 0.0 < self.speed_rate_gain <= 1.0:
             raise InvalidInputError(
@@ -277,6 +294,19 @@ class TrackFit:
     tau_ref: FloatArray
     gain: FloatArray
     valid: BoolArray
+
+
+def _match_ids(
+    old_ids: npt.NDArray[np.uint32], ids: npt.NDArray[np.uint32]
+) -> tuple[npt.NDArray[np.intp], BoolArray]:
+    """For each of ``ids`` (N,), its row in ``old_ids`` (M,) and whether it is there:
+    ((N,) rows, valid where found; (N,) bool). Vectorised (one sort, one search)."""
+    if old_ids.shape[0] == 0:
+        return np.zeros(ids.shape[0], dtype=np.intp), np.zeros(ids.shape[0], dtype=bool)
+    order = np.argsort(old_ids, kind="stable")
+    pos = np.minimum(np.searchsorted(old_ids[order], ids), old_ids.shape[0] - 1)
+    rows = order[pos]
+    return rows, old_ids[rows] == ids
 
 
 def _small_rotation(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -364,6 +394,8 @@ class _MotionState:
         bearing_cache: (stamp_ns, ids (N,), pixel history (N, W, 2), its unrotated
             bearings (N, W, 3)) of the previous frame: undistortion (Newton iterations for
             real lenses) then runs on each new position only, not on the whole history.
+        residual_memory: (stamp_ns, ids (N,), running mean coplanarity residual (N,) in
+            flow-noise sigmas) of the tracks of the last heading fit.
     """
 
     last_stamp: int | None = None
@@ -372,6 +404,7 @@ class _MotionState:
     speed_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
     speed_rate: float = 0.0
     bearing_cache: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
+    residual_memory: tuple[int, npt.NDArray[np.uint32], FloatArray] | None = None
 
 
 @dataclass(frozen=True)
@@ -449,14 +482,16 @@ class _Integrated:
 @dataclass(frozen=True)
 class _Headed:
     """Stage 3 (heading): the estimate, the unit heading at the fits' reference time and
-    now (3,), its 1-sigma (rad), and the rates ``f`` (N, 3) with the leftover rotation
-    removed."""
+    now (3,), its 1-sigma (rad), the rates ``f`` (N, 3) with the leftover rotation
+    removed, and the coplanarity residuals (N,) in units of each track's flow noise
+    ``f_sigma`` (NaN where a point was not used)."""
 
     est: hd.MotionEstimate
     heading_ref: FloatArray
     heading: FloatArray
     heading_sigma: float
     f: FloatArray
+    residuals: FloatArray
     timings: tuple[tuple[str, float], ...]
 
 
@@ -624,14 +659,10 @@ class OwlEngine:
             _, c_ids, c_pix, c_bear = cache
             cols = min(w - 1, c_pix.shape[1])
             if c_ids.shape[0] > 0 and cols > 0:
-                order = np.argsort(c_ids, kind="stable")
-                pos = np.minimum(np.searchsorted(c_ids[order], ids), c_ids.shape[0] - 1)
-                rows = order[pos]
+                rows, found = _match_ids(c_ids, ids)
                 old = hist[:, 1 : 1 + cols]
                 was = c_pix[rows, :cols]
-                same = (c_ids[rows] == ids) & np.all(
-                    (old == was) | (np.isnan(old) & np.isnan(was)), axis=(1, 2)
-                )
+                same = found & np.all((old == was) | (np.isnan(old) & np.isnan(was)), axis=(1, 2))
                 out[same, 1 : 1 + cols] = c_bear[rows[same], :cols]
                 need[same, 1 : 1 + cols] = False
         out[need] = self.camera.pixel_to_bearing(hist[need])
@@ -944,15 +975,19 @@ class OwlEngine:
                 prior = prior * 1e-12
         else:
             prior = opts.no_gyro_rotation_sigma**2 * np.eye(3)
+        memory = self._residual_memory(integ.ids)
+        f_sigma = integ.f_sigma * np.sqrt(1.0 + (memory / opts.residual_memory_sigma) ** 2)
         est = hd.estimate_motion(
             integ.e,
             integ.f,
-            integ.f_sigma,
+            f_sigma,
             prior,
             options=opts.heading,
             rng=self._rng,
             initial_heading=self._state.last_heading,
         )
+        residuals = est.residuals * f_sigma / integ.f_sigma
+        self._remember_residuals(integ.ids, stamp, residuals, memory)
         if integ.with_gyro and opts.estimate_bias:
             self._bias.update(
                 est.rotation_error,
@@ -985,7 +1020,33 @@ class OwlEngine:
             heading, heading_sigma = self._heading_now(*args)
         # remove the leftover rotation found jointly with the heading
         f = integ.f + motion.cross(est.rotation_error, integ.e)
-        return _Headed(est, heading_ref, heading, heading_sigma, f, timings)
+        return _Headed(est, heading_ref, heading, heading_sigma, f, residuals, timings)
+
+    def _residual_memory(self, ids: npt.NDArray[np.uint32]) -> FloatArray:
+        """(N,) running mean coplanarity residual of the tracks ``ids`` (N,), in flow-noise
+        sigmas; 0 for tracks without one (new tracks, no memory)."""
+        memory = self._state.residual_memory
+        if memory is None:
+            return np.zeros(ids.shape[0])
+        _, old_ids, old_mean = memory
+        rows, found = _match_ids(old_ids, ids)
+        return np.where(found, old_mean[rows], 0.0)
+
+    def _remember_residuals(
+        self, ids: npt.NDArray[np.uint32], stamp: int, res: FloatArray, old: FloatArray
+    ) -> None:
+        """Move each track's running mean residual towards this frame's ``res`` (N,)
+        (flow-noise sigmas; NaN = not used, counts as 0) with time constant
+        ``residual_memory_s``; a track without one starts at its residual."""
+        tau = self.options.residual_memory_s
+        if tau is None:
+            return
+        memory = self._state.residual_memory
+        dt = (stamp - memory[0]) * 1e-9 if memory is not None else 0.0
+        gain = 1.0 - math.exp(-max(dt, 0.0) / tau)
+        r = np.nan_to_num(res, nan=0.0)
+        new = np.where(old != 0.0, old + gain * (r - old), r)
+        self._state.residual_memory = (stamp, ids.copy(), new)
 
     def _local_looming(self, integ: _Integrated, f: FloatArray) -> motion.LocalFit | None:
         """The local deformation rule over each feature's pixel neighbours (None when there
@@ -1021,7 +1082,7 @@ class OwlEngine:
         from the local rule and the heading route (movers excluded from the route)."""
         opts = self.options
         e, f_sigma, heading_ref = integ.e, integ.f_sigma, headed.heading_ref
-        res = np.nan_to_num(headed.est.residuals, nan=0.0)
+        res = np.nan_to_num(headed.residuals, nan=0.0)
         moving = np.abs(res) > opts.moving_sigma
         # A static point's omega is a positive multiple of e x heading (it lies in front of
         # the camera): a clearly negative multiple is something moving against the flow.

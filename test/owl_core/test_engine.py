@@ -268,3 +268,30 @@ def test_history_bearings_reused_equal_fresh_undistortion(
         np.testing.assert_allclose(a.bearings, b.bearings, rtol=0, atol=1e-15)
         points += a.num_points
     assert points > 1000
+
+
+def test_residual_memory_is_a_running_mean_per_track(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
+) -> None:
+    """Each track's running mean coplanarity residual moves towards the frame's residual
+    with the time constant residual_memory_s; a new track starts at its own residual, an
+    unused one (NaN) decays towards 0; None keeps no memory."""
+    sim, _ = street
+    eng = make_engine(sim, residual_memory_s=0.1, residual_memory_sigma=0.5)
+    ids = np.array([7, 3, 9], dtype=np.uint32)
+    np.testing.assert_array_equal(eng._residual_memory(ids), 0.0)
+    eng._remember_residuals(ids, 0, np.array([2.0, -1.0, np.nan]), eng._residual_memory(ids))
+    np.testing.assert_allclose(eng._residual_memory(ids), [2.0, -1.0, 0.0])
+    later = np.array([3, 11, 7], dtype=np.uint32)  # 9 gone, 11 new, order changed
+    old = eng._residual_memory(later)
+    np.testing.assert_allclose(old, [-1.0, 0.0, 2.0])
+    eng._remember_residuals(later, 100_000_000, np.array([np.nan, 4.0, 0.0]), old)
+    gain = 1.0 - np.exp(-1.0)  # 0.1 s at a 0.1 s time constant
+    np.testing.assert_allclose(
+        eng._residual_memory(later), [-1.0 * (1 - gain), 4.0, 2.0 * (1 - gain)]
+    )
+    off = make_engine(sim, residual_memory_s=None)
+    off._remember_residuals(ids, 0, np.array([2.0, -1.0, 1.0]), off._residual_memory(ids))
+    np.testing.assert_array_equal(off._residual_memory(ids), 0.0)
+    with pytest.raises(InvalidInputError, match="residual_memory_s"):
+        EngineOptions(residual_memory_s=0.0)
