@@ -121,6 +121,16 @@ class EngineOptions:
             heading fit with its flow noise multiplied by ``sqrt(1 + (m / this)^2)``,
             dimensionless (flow-noise sigmas): a persistent error is down-weighted while
             it lasts, and a track that recovers regains its weight.
+        range_filter: filter each track's r/|t| over frames: the previous frame's scaled
+            point, moved on by the elapsed time (minus the heading x dt, rescaled by the
+            speed change, rotated with the gyro into this frame), predicts this frame's,
+            and the two are fused in inverse range by their variances; L, omega, RoT and
+            the point are rescaled to the fused r/|t| (the per-point heading is kept).
+            Points near the focus of expansion, whose one-frame r/|t| is poor, gain most.
+        range_process_rel: relative 1-sigma the prediction gains per sqrt(second)
+            (heading and speed errors), 1/sqrt(s).
+        range_gate: a measurement farther than this many combined sigmas from the
+            prediction (an occlusion, a track that jumped) restarts the track's filter.
         seed: seed of the RANSAC random generator (results are deterministic).
     """
 
@@ -161,6 +171,9 @@ class EngineOptions:
     heading_filter: hf.TwoModelOptions | None = field(default_factory=hf.TwoModelOptions)
     residual_memory_s: float | None = 0.3
     residual_memory_sigma: float = 0.5
+    range_filter: bool = True
+    range_process_rel: float = 0.05
+    range_gate: float = 4.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -207,12 +220,13 @@ class EngineOptions:
             "max_frame_gap_s",
             "quality_rel_sigma",
             "residual_memory_sigma",
+            "range_gate",
         )
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise InvalidInputError(f"{name} must be positive and finite, got {value!r}")
-        for name in ("min_quality", "min_tor", "bias_random_walk"):
+        for name in ("min_quality", "min_tor", "bias_random_walk", "range_process_rel"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise InvalidInputError(f"{name} must be >= 0 and finite, got {value!r}")
@@ -396,6 +410,9 @@ class _MotionState:
             real lenses) then runs on each new position only, not on the whole history.
         residual_memory: (stamp_ns, ids (N,), running mean coplanarity residual (N,) in
             flow-noise sigmas) of the tracks of the last heading fit.
+        range_state: (stamp_ns, ids (N,), filtered scaled points (N, 3) in that frame, s,
+            their relative 1-sigma (N,), the heading (3,)) of the last frame, for
+            ``range_filter``.
     """
 
     last_stamp: int | None = None
@@ -405,6 +422,9 @@ class _MotionState:
     speed_rate: float = 0.0
     bearing_cache: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
     residual_memory: tuple[int, npt.NDArray[np.uint32], FloatArray] | None = None
+    range_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray, FloatArray] | None = (
+        None
+    )
 
 
 @dataclass(frozen=True)
@@ -1048,6 +1068,55 @@ class OwlEngine:
         new = np.where(old != 0.0, old + gain * (r - old), r)
         self._state.residual_memory = (stamp, ids.copy(), new)
 
+    def _filter_ranges(
+        self,
+        integ: _Integrated,
+        headed: _Headed,
+        stamp: int,
+        ranges: FloatArray,
+        rel_sigma: FloatArray,
+        usable: BoolArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Per-track filter of r/|t|: the previous frame's scaled point moved on by the
+        elapsed time (minus heading x dt, rotated with the gyro into this frame) predicts
+        this frame's; fused by variance with the measurement. Returns (N,) r/|t| (s) and
+        its relative 1-sigma."""
+        opts = self.options
+        out_r = ranges.copy()
+        out_rel = rel_sigma.copy()
+        prev = self._state.range_state
+        if prev is not None:
+            p_stamp, p_ids, p_points, p_rel, p_heading = prev
+            cols = np.flatnonzero(integ.stamps == p_stamp)
+            if cols.size and cols[0] > 0:
+                dt = (stamp - p_stamp) * 1e-9
+                rot = integ.rotations[int(cols[0])]
+                rows, found = _match_ids(p_ids, integ.ids)
+                moved = (p_points[rows] - p_heading[None, :] * dt) * math.exp(
+                    -self._state.speed_rate * dt
+                )
+                pred = moved @ rot.T
+                r_pred = np.einsum("ni,ni->n", pred, integ.e_now)
+                rel_pred = np.sqrt(p_rel[rows] ** 2 + opts.range_process_rel**2 * dt)
+                # fused in inverse range (the noise of |ToR| is closer to Gaussian there)
+                inv_p = 1.0 / np.where(r_pred > 0, r_pred, np.nan)
+                inv_m = 1.0 / ranges
+                var_p = (rel_pred * inv_p) ** 2
+                var_m = (rel_sigma * inv_m) ** 2
+                ok = found & usable & (r_pred > 0) & np.isfinite(var_p) & np.isfinite(var_m)
+                ok &= np.abs(inv_m - inv_p) <= opts.range_gate * np.sqrt(var_p + var_m)
+                w_p = np.where(ok, var_m / np.maximum(var_p + var_m, 1e-300), 0.0)
+                inv = np.where(ok, w_p * inv_p + (1.0 - w_p) * inv_m, inv_m)
+                var = np.where(ok, var_p * var_m / np.maximum(var_p + var_m, 1e-300), var_m)
+                out_r = 1.0 / inv
+                out_rel = np.where(ok, np.sqrt(var) / np.maximum(np.abs(inv), 1e-12), rel_sigma)
+        keep = usable & np.isfinite(out_r) & np.isfinite(out_rel)
+        points = integ.e_now[keep] * out_r[keep, None]
+        self._state.range_state = (
+            stamp, integ.ids[keep].copy(), points, out_rel[keep], headed.heading.copy()
+        )  # fmt: skip
+        return out_r, out_rel
+
     def _local_looming(self, integ: _Integrated, f: FloatArray) -> motion.LocalFit | None:
         """The local deformation rule over each feature's pixel neighbours (None when there
         are too few features)."""
@@ -1169,6 +1238,18 @@ class OwlEngine:
         rel_sigma = np.sqrt(np.where(fused.valid, fused.variance, np.inf)) / np.maximum(
             tor_ref, 1e-12
         )
+        if opts.range_filter:
+            ranges, rel_sigma = self._filter_ranges(
+                integ, headed, stamp, quantities.range_over_speed, rel_sigma,
+                valid & fused.valid & ~moving,
+            )  # fmt: skip
+            # ToR scales with 1 / (r/|t|): L and omega keep the point's own heading
+            scale = np.where(valid & np.isfinite(ranges), quantities.range_over_speed, 1.0)
+            scale = scale / np.where(valid & np.isfinite(ranges), ranges, 1.0)
+            looming_now, omega_now = looming_now * scale, omega_now * scale[:, None]
+            quantities = motion.owl_quantities(
+                integ.e_now, looming_now, omega_now, min_tor=opts.min_tor
+            )
         q_precision = 1.0 / (1.0 + (rel_sigma / opts.quality_rel_sigma) ** 2)
         quality = q_local * q_precision / (1.0 + (res / opts.moving_sigma) ** 2)
         flags = fused.flags | integ.flags_all

@@ -295,3 +295,60 @@ def test_residual_memory_is_a_running_mean_per_track(
     np.testing.assert_array_equal(off._residual_memory(ids), 0.0)
     with pytest.raises(InvalidInputError, match="residual_memory_s"):
         EngineOptions(residual_memory_s=0.0)
+
+
+def _range_frame(points_now: np.ndarray, ids: np.ndarray, stamps: np.ndarray, rot: np.ndarray):
+    """An integrate record holding only what the range filter reads: stamps, the rotation
+    from the previous frame (column 1), bearings now and ids."""
+    from owl_core import engine as eng
+
+    n = points_now.shape[0]
+    e_now = points_now / np.linalg.norm(points_now, axis=1, keepdims=True)
+    z = np.zeros((n, 3))
+    return eng._Integrated(
+        stamps, np.stack([np.eye(3), rot]), True, np.uint8(0), 0.1, e_now, e_now, z,
+        np.ones(n), np.zeros(n), np.zeros((n, 2)), ids, (), (), (),
+    )  # fmt: skip
+
+
+def test_range_filter_fuses_the_moved_previous_point_with_the_measurement(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
+) -> None:
+    """Static points, the camera moving along its heading h at constant speed and turning
+    by R between frames: the previous scaled point moved on by -h dt and rotated by R is
+    exactly this frame's. With an exact previous state (relative sigma s_p, grown by the
+    process noise) and a measurement off by a factor (1 + d) with relative sigma s_m, the
+    fused inverse range is their inverse-variance mean; a measurement beyond the gate
+    restarts the track at the measurement."""
+    from owl_core import engine as eng
+    from owl_core.geometry import so3_exp
+
+    sim, _ = street
+    e = make_engine(sim, range_process_rel=0.0, range_gate=4.0)
+    h = np.array([0.1, 0.0, 1.0]) / np.linalg.norm([0.1, 0.0, 1.0])
+    pts0 = np.array([[1.0, 0.5, 6.0], [-2.0, 0.3, 9.0], [0.4, -0.2, 4.0]])  # s (r/|t|)
+    ids = np.array([4, 5, 6], dtype=np.uint32)
+    dt, rot = 0.05, so3_exp(np.array([0.0, 0.02, 0.0]))
+    stamps = np.array([int(dt * 1e9), 0], dtype=np.int64)
+    headed = eng._Headed(None, h, h, 0.0, np.zeros((3, 3)), np.zeros(3), ())  # type: ignore[arg-type]
+    first = _range_frame(pts0, ids, np.array([0, -1], dtype=np.int64), np.eye(3))
+    r0 = np.linalg.norm(pts0, axis=1)
+    out, rel = e._filter_ranges(first, headed, 0, r0, np.full(3, 0.02), np.ones(3, bool))
+    np.testing.assert_allclose(out, r0)  # nothing to fuse yet
+    pts1 = (pts0 - h * dt) @ rot.T  # the truth now (h is a direction fixed in the scene)
+    h1 = rot @ h
+    headed1 = eng._Headed(None, h1, h1, 0.0, np.zeros((3, 3)), np.zeros(3), ())  # type: ignore[arg-type]
+    second = _range_frame(pts1, ids, stamps, rot)
+    r1 = np.linalg.norm(pts1, axis=1)
+    d = np.array([0.03, -0.03, 0.5])  # the last one is 25 sigma off: restarted
+    s_m = np.array([0.02, 0.04, 0.02])
+    out, rel = e._filter_ranges(
+        second, headed1, int(dt * 1e9), r1 * (1 + d), s_m, np.ones(3, bool)
+    )
+    inv_p, inv_m = 1.0 / r1, 1.0 / (r1 * (1 + d))
+    var_p, var_m = (0.02 * inv_p) ** 2, (s_m * inv_m) ** 2
+    fused = (inv_p / var_p + inv_m / var_m) / (1.0 / var_p + 1.0 / var_m)
+    np.testing.assert_allclose(out[:2], 1.0 / fused[:2], rtol=1e-9)
+    np.testing.assert_allclose(out[2], r1[2] * 1.5, rtol=1e-12)
+    np.testing.assert_allclose(rel[2], s_m[2])
+    assert np.all(rel[:2] < s_m[:2])
