@@ -37,6 +37,7 @@ from scipy.spatial import cKDTree
 from owl_core import heading as hd
 from owl_core import heading_filter as hf
 from owl_core import motion, windows
+from owl_core import rolling_shutter as rs
 from owl_core.camera import CameraModel
 from owl_core.errors import InvalidInputError
 from owl_core.geometry import quat_xyzw_to_matrix
@@ -58,6 +59,11 @@ class EngineOptions:
         camera_to_imu_rotation_xyzw: (x, y, z, w) quaternion of the rotation taking
             camera-optical-frame vectors into the IMU frame (contract.md). Default identity.
         imu_time_offset_s: IMU stamp minus camera stamp for simultaneous events, seconds.
+        rolling_shutter_readout_s: rolling-shutter readout time T, seconds (row 0 to the
+            row after the last; 0 = global shutter). The row at pixel v is seen at
+            ``stamp + (v / height) T``: each tracked position gets its row's time for the gyro
+            rotation and the track fit, and every output refers to the stamp
+            (:mod:`owl_core.rolling_shutter`). The gyro must then cover ``stamp + T``.
         require_gyro: True: frames without gyro coverage produce no points (reason given).
             False: they are processed without derotation (the leftover rotation is then
             estimated from the flow alone) and every point is flagged NO_GYRO (and IMU_GAP
@@ -118,6 +124,7 @@ class EngineOptions:
 
     camera_to_imu_rotation_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
     imu_time_offset_s: float = 0.0
+    rolling_shutter_readout_s: float = 0.0
     require_gyro: bool = True
     max_features: int = 1000
     tracker: TrackerOptions = field(default_factory=TrackerOptions)
@@ -162,6 +169,11 @@ class EngineOptions:
         if not math.isfinite(self.imu_time_offset_s):
             raise InvalidInputError(
                 f"imu_time_offset_s must be finite, got {self.imu_time_offset_s}"
+            )
+        readout = self.rolling_shutter_readout_s
+        if not (isinstance(readout, int | float) and math.isfinite(readout) and 0 <= readout < 1):
+            raise InvalidInputError(
+                f"rolling_shutter_readout_s must be in [0, 1) s, got {readout!r}"
             )
         ints = {
             "max_features": (self.max_features, 1),
@@ -427,7 +439,9 @@ class _Integrated:
     """Stage 2 (integrate), for the N tracks with a fit: (W,) fit-window stamps, ns, and
     (W, 3, 3) rotations to now; unit bearings now ``e_now`` and at the reference time
     ``e`` (N, 3), derotated bearing rates ``f`` (N, 3), 1/s, with 1-sigma ``f_sigma``
-    (N,); reference times ``tau_ref`` (N,), s (<= 0); pixels (N, 2); ids (N,)."""
+    (N,); reference times ``tau_ref`` (N,), s (<= 0); pixels (N, 2); ids (N,);
+    ``tau_rate`` (N,) the time the rates belong to, s, when not ``tau_ref`` (a rolling
+    shutter, :func:`owl_core.rolling_shutter.fit_timed`)."""
 
     stamps: npt.NDArray[np.int64]
     rotations: FloatArray
@@ -444,6 +458,7 @@ class _Integrated:
     notes: tuple[str, ...]
     dropped: tuple[tuple[str, int], ...]
     timings: tuple[tuple[str, float], ...]
+    tau_rate: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -504,6 +519,7 @@ class OwlEngine:
             camera_to_imu_rotation_xyzw=opts.camera_to_imu_rotation_xyzw,
             imu_time_offset_ns=round(opts.imu_time_offset_s * 1e9),
         )
+        self._readout_ns = round(opts.rolling_shutter_readout_s * 1e9)
         self._r_ci = quat_xyzw_to_matrix(
             np.asarray(opts.camera_to_imu_rotation_xyzw, dtype=np.float64)
             / np.linalg.norm(opts.camera_to_imu_rotation_xyzw)
@@ -572,9 +588,10 @@ class OwlEngine:
 
     def covers(self, stamp_ns: int) -> bool:
         """Whether the gyro covers the interval from the previous frame to ``stamp_ns``
-        (just ``stamp_ns`` for the first frame)."""
+        (just ``stamp_ns`` for the first frame), and to the last row's time with a rolling
+        shutter (``stamp_ns`` + the readout)."""
         start = self._state.last_stamp if self._state.last_stamp is not None else int(stamp_ns)
-        return self._gyro.covers(min(start, int(stamp_ns)), int(stamp_ns))
+        return self._gyro.covers(min(start, int(stamp_ns)), int(stamp_ns) + self._readout_ns)
 
     def reset(self, keep_gyro: bool = False) -> None:
         """Forget tracks, heading and the frame-to-frame state; without ``keep_gyro`` also
@@ -791,21 +808,18 @@ class OwlEngine:
         bias = self._bias.bias
         prev = self._state.last_stamp
         predict = None
-        if prev is not None and self._gyro.covers(prev, stamp):
+        if (
+            self._readout_ns
+            and prev is not None
+            and self._gyro.covers(prev, stamp + self._readout_ns)
+        ):
+            predict = self._row_time_predictor(prev, stamp, bias)
+        elif prev is not None and self._gyro.covers(prev, stamp):
             r_rel = self._gyro.relative_rotation(prev, stamp, bias)
             cam = self.camera
-            cache = self._state.bearing_cache
 
             def predict(px: FloatArray) -> FloatArray:
-                if (
-                    cache is not None
-                    and cache[0] == prev
-                    and np.array_equal(cache[2][:, 0], px, equal_nan=True)
-                ):
-                    e_prev = cache[3][:, 0]  # the previous frame converted these pixels
-                else:
-                    e_prev = cam.pixel_to_bearing(px)
-                return cam.bearing_to_pixel(e_prev @ r_rel.T)
+                return cam.bearing_to_pixel(self._previous_bearings(prev, px) @ r_rel.T)
 
         t0 = self.clock()
         tracks = self._tracker.track(img, stamp, predict)
@@ -818,6 +832,78 @@ class OwlEngine:
         dropped = tuple((f"lost_{k}", int(v)) for k, v in lost.items() if v)
         return _Tracked(tracks, prev, bias, tuple(timings), dropped)
 
+    def _previous_bearings(self, prev: int, px: FloatArray) -> FloatArray:
+        """Unit bearings (M, 3) of the previous frame's pixels ``px`` (M, 2): from the
+        bearing cache when that frame converted exactly these pixels."""
+        cache = self._state.bearing_cache
+        if (
+            cache is not None
+            and cache[0] == prev
+            and np.array_equal(cache[2][:, 0], px, equal_nan=True)
+        ):
+            e_prev: FloatArray = cache[3][:, 0]
+            return e_prev
+        return self.camera.pixel_to_bearing(px)
+
+    def _row_time_predictor(
+        self, prev: int, stamp: int, bias: FloatArray
+    ) -> Callable[[FloatArray], FloatArray]:
+        """The tracker's gyro prediction with a rolling shutter: each feature rotated from its
+        row's time in the previous frame (stamp ``prev``) to its row's time in this one
+        (predicted from its previous row, then once more from the predicted row)."""
+        frames = np.array([stamp, prev], dtype=np.int64)
+        grid = rs.readout_rotations(self._gyro, frames, stamp, self._readout_ns, bias)
+        cam = self.camera
+        height = float(cam.height)
+
+        def predict(px: FloatArray) -> FloatArray:
+            fraction = px[:, 1] / height
+            e_stamp = grid.to_stamp(1, fraction, self._previous_bearings(prev, px))
+            for _ in range(2):
+                out = cam.bearing_to_pixel(grid.from_stamp(0, fraction, e_stamp))
+                fraction = np.where(np.isfinite(out[:, 1]), out[:, 1] / height, fraction)
+            return out
+
+        return predict
+
+    def _derotate_rows(
+        self,
+        bearings: FloatArray,
+        hist: FloatArray,
+        stamps: npt.NDArray[np.int64],
+        tau: FloatArray,
+        stamp: int,
+        bias: FloatArray,
+        with_gyro: bool,
+        usable_col: BoolArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Rolling shutter: the time of each tracked position from its pixel row, and its
+        bearing rotated from that time into the camera frame at ``stamp``.
+
+        Args:
+            bearings: (N, W, 3) unit bearings of ``hist`` (N, W, 2) px, each in its own
+                frame's camera orientation; ``stamps`` (W,) their frame stamps, ns; ``tau``
+                (W,) the same relative to ``stamp``, s.
+            bias: (3,) gyro bias, IMU frame, rad/s; ``with_gyro``: derotate at all;
+                ``usable_col`` (>= W,) the columns the gyro covers.
+
+        Returns:
+            (N, W, 3) bearings in the current camera frame (not rotated without gyro) and
+            (N, W) their times relative to ``stamp``, s.
+        """
+        n, w = hist.shape[:2]
+        row_tau = rs.row_times(hist[..., 1], tau, self.camera.height, self._readout_ns * 1e-9)
+        cols = np.flatnonzero(usable_col[:w])
+        if not with_gyro or cols.size < 2:
+            return bearings, row_tau
+        grid = rs.readout_rotations(self._gyro, stamps[cols], stamp, self._readout_ns, bias)
+        frame = np.broadcast_to(np.arange(cols.size), (n, cols.size)).reshape(-1)
+        fraction = hist[:, cols, 1].reshape(-1) / float(self.camera.height)
+        out = np.full_like(bearings, np.nan)
+        rotated = grid.to_stamp(frame, fraction, bearings[:, cols].reshape(-1, 3))
+        out[:, cols] = rotated.reshape(n, cols.size, 3)
+        return out, row_tau
+
     def _gyro_rotations(
         self, stamps: npt.NDArray[np.int64], stamp: int, bias: FloatArray, have_gyro: bool
     ) -> tuple[FloatArray, BoolArray, bool, np.uint8, list[str]] | StageSkip:
@@ -828,7 +914,8 @@ class OwlEngine:
         columns = columns[columns < opts.fit_frames]
         rotations = np.repeat(np.eye(3)[None], stamps.shape[0], axis=0)
         usable_col = stamps >= 0
-        covered = [k for k in columns[1:] if self._gyro.covers(int(stamps[k]), stamp)]
+        end = stamp + self._readout_ns  # the last row of this frame with a rolling shutter
+        covered = [k for k in columns[1:] if self._gyro.covers(int(stamps[k]), end)]
         usable_col[np.setdiff1d(columns[1:], covered)] = False
         if covered:  # one integration back over the whole fit window
             rotations[covered] = self._gyro.relative_rotations(stamps[covered], stamp, bias)
@@ -881,14 +968,28 @@ class OwlEngine:
         n_tracks = hist.shape[0]
         w = hist.shape[1]
         bearings_h = self._history_bearings(stamp, tracks.ids, hist, stamps)
-        # column k rotated by rotations[k] (a batched matmul: ~10x faster than einsum here)
-        by_col = np.matmul(bearings_h.transpose(1, 0, 2), rotations[:w].transpose(0, 2, 1))
-        bearings_h = np.ascontiguousarray(by_col.transpose(1, 0, 2))  # (N, W, 3)
-        mask = np.all(np.isfinite(bearings_h), axis=2) & usable_col[None, :w]
         tau = np.where(stamps[:w] >= 0, (stamps[:w] - stamp) * 1e-9, 0.0)
+        row_tau = None
+        if self._readout_ns:  # rolling shutter: each position at its row's time
+            bearings_h, row_tau = self._derotate_rows(
+                bearings_h, hist, stamps, tau, stamp, tracked.bias, with_gyro, usable_col
+            )
+        else:  # column k rotated by rotations[k] (a batched matmul: ~10x faster than einsum)
+            by_col = np.matmul(bearings_h.transpose(1, 0, 2), rotations[:w].transpose(0, 2, 1))
+            bearings_h = np.ascontiguousarray(by_col.transpose(1, 0, 2))  # (N, W, 3)
+        mask = np.all(np.isfinite(bearings_h), axis=2) & usable_col[None, :w]
         enough = mask.sum(axis=1) >= min_frames
         enough &= mask[:, 0]
-        fit = fit_tracks(bearings_h, tau, mask & enough[:, None], opts.fit_order)
+        tau_rate = None
+        if row_tau is None:
+            fit = fit_tracks(bearings_h, tau, mask & enough[:, None], opts.fit_order)
+            e_now = bearings_h[:, 0]
+        else:
+            *timed, tau_rate = rs.fit_timed(
+                bearings_h, row_tau, mask & enough[:, None], opts.fit_order, tau
+            )
+            fit = TrackFit(*timed)  # type: ignore[arg-type]
+            e_now = rs.bearings_at_stamp(bearings_h[:, 0], fit.rate, row_tau[:, 0])
         ok = enough & fit.valid
         young = int(np.count_nonzero(~enough))
         dropped = (("young_track", young),) if young else ()
@@ -907,7 +1008,7 @@ class OwlEngine:
             with_gyro=with_gyro,
             flags_all=flags_all,
             window_s=window_s,
-            e_now=bearings_h[idx, 0],
+            e_now=e_now[idx],
             e=fit.bearing[idx],
             f=fit.rate[idx],
             f_sigma=fit.gain[idx] * bearing_sigma,
@@ -917,6 +1018,7 @@ class OwlEngine:
             notes=tuple(notes),
             dropped=dropped,
             timings=(("integrate", self.clock() - t0),),
+            tau_rate=tau_rate[idx] if tau_rate is not None else None,
         )
 
     def _estimate_heading(
@@ -1077,12 +1179,35 @@ class OwlEngine:
         omega_now = motion.cross(e_now, h_i) / safe[:, None]
         return looming_now, omega_now, ok_now
 
+    def _rates_at_bearing_time(self, integ: _Integrated, headed: _Headed) -> FloatArray:
+        """The rates ``f`` (N, 3), 1/s, at the time of their bearings.
+
+        With a rolling shutter a track's rate belongs to the centroid of its entries' row
+        times (``tau_rate``), a few ms after its bearing's ``tau_ref``. A static point's
+        derotated rate grows as ``df/dt = 2 L f`` (plus a part along the bearing; from
+        ``f = -(I - e e^T) t / r`` and ``dr/dt = -L r``), so at ``tau_ref`` it is
+        ``f (1 - 2 L (tau_rate - tau_ref))``, L from the heading route ``|f| cot(alpha)``
+        (none within ``heading_min_sin`` of the focus of expansion, where f -> 0).
+        Neighbours in other rows then compare rates of one time. Global shutter: ``f``.
+        """
+        f = headed.f
+        if integ.tau_rate is None:
+            return f
+        h = headed.heading_ref
+        cos = integ.e @ h
+        sin = np.linalg.norm(motion.cross(integ.e, h[None, :]), axis=1)
+        near = sin < self.options.heading_min_sin
+        looming = np.where(near, 0.0, np.linalg.norm(f, axis=1) * cos / np.where(near, 1.0, sin))
+        scale = 1.0 - 2.0 * looming * (integ.tau_rate - integ.tau_ref)
+        out: FloatArray = f * scale[:, None]
+        return out
+
     def _looming(self, integ: _Integrated, headed: _Headed, stamp: int) -> _Loomed:
         """Stage 4: L per feature (local rule fused with the heading route), movers, the
         OWL quantities at the current stamp, quality and flags."""
         t0 = self.clock()
         opts = self.options
-        e, f = integ.e, headed.f
+        e, f = integ.e, self._rates_at_bearing_time(integ, headed)
         omega = motion.cross(f, e)
         local = self._local_looming(integ, f)
         moving, res, fused = self._movers_and_fused(integ, headed, omega, local)

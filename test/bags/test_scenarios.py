@@ -37,6 +37,7 @@ def test_listing_and_unknown_name() -> None:
         "car",
         "sideways",
         "slow_start",
+        "brisk",
     }
     assert set(scenarios.names()) == expected
     assert all(
