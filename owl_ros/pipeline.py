@@ -252,16 +252,23 @@ class Pipeline:
             self._engine = None
             return
         self._engine = OwlEngine(self._camera, self.options.engine)
-        eng = self.options.engine
-        q = np.asarray(eng.camera_to_imu_rotation_xyzw, dtype=np.float64)
-        self._calibration = CalibrationMonitor(
-            self._camera, quat_xyzw_to_matrix(q / np.linalg.norm(q)), eng.imu_time_offset_s
-        )
+        self._calibration = self._calibration_monitor()
         if self._ring:
             stamps = np.fromiter((s for s, _ in self._ring), dtype=np.int64, count=len(self._ring))
             rates = np.array([w for _, w in self._ring], dtype=np.float64).reshape(-1, 3)
             self._engine.add_gyro(GyroSamples(stamp_ns=stamps, angular_velocity=rates))
         self._last_stamp = None
+
+    def _calibration_monitor(self) -> CalibrationMonitor | None:
+        """The live calibration check for the configured extrinsic (None when switched off
+        by ``calibration_check`` or before a camera is known)."""
+        if not self.options.calibration_check or self._camera is None:
+            return None
+        eng = self.options.engine
+        q = np.asarray(eng.camera_to_imu_rotation_xyzw, dtype=np.float64)
+        return CalibrationMonitor(
+            self._camera, quat_xyzw_to_matrix(q / np.linalg.norm(q)), eng.imu_time_offset_s
+        )
 
     def reconfigure(self, options: NodeOptions) -> None:
         """New options (already validated); a change of engine options rebuilds the engine
@@ -271,6 +278,8 @@ class Pipeline:
         if options.engine != old.engine:
             self._rebuild_engine()
             self._count("reconfigured")
+        elif options.calibration_check != old.calibration_check:
+            self._calibration = self._calibration_monitor()
         while len(self._pending) > options.queue_size:
             self._pending.popleft()
             self._count("dropped_queue_full")
