@@ -129,6 +129,15 @@ class GyroBuffer:
         """IMU stamp minus camera stamp, nanoseconds."""
         return self._offset_ns
 
+    def set_imu_time_offset_ns(self, offset_ns: int) -> None:
+        """Use another IMU time offset (ns) from now on; the held samples stay (an online
+        estimate of the offset replaces the configured one)."""
+        if isinstance(offset_ns, bool) or not isinstance(offset_ns, int | np.integer):
+            raise InvalidInputError(
+                f"imu_time_offset_ns must be an integer (nanoseconds), got {offset_ns!r}"
+            )
+        self._offset_ns = int(offset_ns)
+
     @property
     def stamps_ns(self) -> npt.NDArray[np.int64]:
         """(N,) int64 stamps of the held samples, IMU clock, nanoseconds (a copy)."""

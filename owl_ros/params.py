@@ -231,6 +231,16 @@ PARAMS: tuple[Param, ...] = (
         engine="rolling_shutter_readout_s",
     ),
     Param(
+        "estimate_imu_time_offset",
+        "bool",
+        _E.estimate_time_offset,
+        "estimate a residual camera-IMU time offset online from the leftover rotation of "
+        "each frame (a time offset looks like a gyro bias proportional to the angular "
+        "acceleration) and use it, with the bias estimated jointly, once its 1-sigma is "
+        "below 5 ms; starts from imu_time_offset; 'owl: gyro' shows it",
+        engine="estimate_time_offset",
+    ),
+    Param(
         "calibration_check",
         "bool",
         True,

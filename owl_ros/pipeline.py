@@ -535,7 +535,10 @@ class Pipeline:
             covered = engine.covers(stamp)
             if not covered and not flush:
                 offset = engine.gyro.imu_time_offset_ns
-                passed = self._newest_imu_ns is not None and self._newest_imu_ns - offset > stamp
+                last_row = stamp + engine.readout_ns  # a rolling shutter's last row
+                passed = (
+                    self._newest_imu_ns is not None and self._newest_imu_ns - offset > last_row
+                )
                 waiting = now_ns - item.arrival_ns < wait_ns
                 # a full queue ends the wait (the next frame is there already)
                 full = len(self._pending) >= self.options.queue_size > 1
@@ -720,6 +723,10 @@ class Pipeline:
             queue_size=self.options.queue_size,
             require_gyro=self.options.engine.require_gyro,
             calibration=self.calibration_verdict,
+            imu_time_offset_s=engine.imu_time_offset_s if engine is not None else math.nan,
+            imu_time_offset_sigma_s=(
+                engine.imu_time_offset_sigma_s if engine is not None else math.nan
+            ),
         )
         records = build_status(snapshot)
         if reset_window:

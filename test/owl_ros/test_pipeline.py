@@ -341,6 +341,32 @@ def test_bounded_wait_for_imu(feed: Feed) -> None:
     assert any("IMU does not cover" in r for r in outs[0].result.reasons)
 
 
+def test_rolling_shutter_frame_waits_for_imu_up_to_its_last_row(feed: Feed) -> None:
+    stamps = [header_to_ns(i.header) for i in feed.images]
+    for readout, waits in ((0.0, False), (0.03, True)):
+        pipe = Pipeline(options(feed, rolling_shutter_readout_s=readout, imu_wait_s=0.1))
+        # the IMU up to 10 ms past frame 4: its rows reach 30 ms past it
+        imus = [i for i in feed.imus if header_to_ns(i.header) <= stamps[4] + 10_000_000]
+        outs = run(pipe, events(feed, images=feed.images[:5], imus=imus), flush=False)
+        assert len(outs) == (4 if waits else 5)
+        if waits:
+            rest = [i for i in feed.imus if header_to_ns(i.header) > stamps[4] + 10_000_000]
+            pipe.add_events([("imu", i, stamps[4] + 31_000_000) for i in rest[:12]])
+            outs = pipe.poll(stamps[4] + 31_000_000)
+            assert len(outs) == 1 and outs[0].result.num_points > 0
+
+
+def test_calibration_check_switch(feed: Feed) -> None:
+    pipe = Pipeline(options(feed, calibration_check=False))
+    run(pipe, events(feed, images=feed.images[:3]), flush=True)
+    assert pipe._calibration is None
+    engine = pipe.engine
+    pipe.reconfigure(replace(pipe.options, calibration_check=True))  # at runtime
+    assert pipe._calibration is not None and pipe.engine is engine
+    pipe.reconfigure(replace(pipe.options, calibration_check=False))
+    assert pipe._calibration is None and pipe.calibration_verdict is None
+
+
 def test_newest_frame_wins_when_queue_full(feed: Feed) -> None:
     pipe = Pipeline(options(feed, queue_size=2))
     run(pipe, events(feed, images=feed.images[:2]), flush=True)
