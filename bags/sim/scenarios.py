@@ -573,6 +573,21 @@ def _car_yaw(t: F64) -> tuple[F64, F64, F64]:
     return -0.6 / w * np.cos(w * t), 0.6 * np.sin(w * t), 0.6 * w * np.cos(w * t)
 
 
+def _brisk(street: tuple[Rect, ...]) -> Scenario:
+    """Walking while turning at up to 1 rad/s: the rolling-shutter case."""
+    return Scenario(
+        "brisk",
+        "street, camera walking forward at 1.5 m/s while turning briskly (yaw +-0.28 rad "
+        "at 0.5 Hz, pitch +-0.09 rad at 0.8 Hz, roll +-0.04 rad at 0.6 Hz: up to 1 rad/s): "
+        "the rolling-shutter case",
+        street,
+        Trajectory(
+            polynomial_path(_H, (1.5, 0.0, 0.0)),
+            sine_angles(amplitude=(0.28, 0.09, 0.04), freq_hz=(0.5, 0.8, 0.6), phase=(0, 0.5, 1)),
+        ),
+    )
+
+
 def _build() -> dict[str, Scenario]:
     street = tuple(_street_scene())
     out = [
@@ -652,19 +667,6 @@ def _build() -> dict[str, Scenario]:
             ),
         ),
         Scenario(
-            "brisk",
-            "street, camera walking forward at 1.5 m/s while turning briskly (yaw +-0.28 rad "
-            "at 0.5 Hz, pitch +-0.09 rad at 0.8 Hz, roll +-0.04 rad at 0.6 Hz: up to 1 rad/s): "
-            "the rolling-shutter case",
-            street,
-            Trajectory(
-                polynomial_path(_H, (1.5, 0.0, 0.0)),
-                sine_angles(
-                    amplitude=(0.28, 0.09, 0.04), freq_hz=(0.5, 0.8, 0.6), phase=(0, 0.5, 1)
-                ),
-            ),
-        ),
-        Scenario(
             "still",
             "street, camera not moving at all: no points, no heading expected",
             street,
@@ -705,6 +707,7 @@ def _build() -> dict[str, Scenario]:
             Trajectory(polynomial_path((40.0, 0.0, CAMERA_HEIGHT), (-3.0, 0.0, 0.0)), _NO_ROT),
         ),
     ]
+    out.append(_brisk(street))
     return {s.name: s for s in out}
 
 
