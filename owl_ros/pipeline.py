@@ -266,9 +266,10 @@ class Pipeline:
             return None
         eng = self.options.engine
         q = np.asarray(eng.camera_to_imu_rotation_xyzw, dtype=np.float64)
-        return CalibrationMonitor(
-            self._camera, quat_xyzw_to_matrix(q / np.linalg.norm(q)), eng.imu_time_offset_s
-        )
+        # its frame-to-frame rotations refer each image to its stamp, which with a rolling
+        # shutter sees the middle row's time on average: half a readout after row 0
+        offset = eng.imu_time_offset_s + 0.5 * eng.rolling_shutter_readout_s
+        return CalibrationMonitor(self._camera, quat_xyzw_to_matrix(q / np.linalg.norm(q)), offset)
 
     def reconfigure(self, options: NodeOptions) -> None:
         """New options (already validated); a change of engine options rebuilds the engine

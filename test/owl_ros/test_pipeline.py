@@ -365,6 +365,11 @@ def test_calibration_check_switch(feed: Feed) -> None:
     assert pipe._calibration is not None and pipe.engine is engine
     pipe.reconfigure(replace(pipe.options, calibration_check=False))
     assert pipe._calibration is None and pipe.calibration_verdict is None
+    # with a rolling shutter the check's images refer to their middle row on average
+    pipe = Pipeline(options(feed, imu_time_offset=0.01, rolling_shutter_readout_s=0.03))
+    run(pipe, events(feed, images=feed.images[:2]), flush=True)
+    assert pipe._calibration is not None
+    assert pipe._calibration._offset == pytest.approx(0.025, abs=1e-12)
 
 
 def test_newest_frame_wins_when_queue_full(feed: Feed) -> None:
