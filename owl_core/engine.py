@@ -514,9 +514,16 @@ class OwlEngine:
     Args:
         camera: the camera model of the images.
         options: engine settings.
+        gyro: a gyro buffer to keep (its samples survive a rebuilt engine; its rotation
+            and offset are set from ``options``); None: a new, empty one.
     """
 
-    def __init__(self, camera: CameraModel, options: EngineOptions | None = None) -> None:
+    def __init__(
+        self,
+        camera: CameraModel,
+        options: EngineOptions | None = None,
+        gyro: GyroBuffer | None = None,
+    ) -> None:
         if not isinstance(camera, CameraModel):
             raise InvalidInputError(f"camera must be a CameraModel, got {type(camera).__name__}")
         self.camera = camera
@@ -530,10 +537,12 @@ class OwlEngine:
                 "history_len": history,
             }
         )
-        self._gyro = GyroBuffer(
-            camera_to_imu_rotation_xyzw=opts.camera_to_imu_rotation_xyzw,
-            imu_time_offset_ns=round(opts.imu_time_offset_s * 1e9),
-        )
+        offset_ns = round(opts.imu_time_offset_s * 1e9)
+        if gyro is None:
+            gyro = GyroBuffer(opts.camera_to_imu_rotation_xyzw, offset_ns)
+        else:
+            gyro.set_calibration(opts.camera_to_imu_rotation_xyzw, offset_ns)
+        self._gyro = gyro
         self._readout_ns = round(opts.rolling_shutter_readout_s * 1e9)
         self._r_ci = quat_xyzw_to_matrix(
             np.asarray(opts.camera_to_imu_rotation_xyzw, dtype=np.float64)
@@ -659,7 +668,7 @@ class OwlEngine:
             if self._offset_filter is not None:
                 self._offset_filter.reset()
                 self._offset_rng = np.random.default_rng(self.options.seed + 1)
-                self._gyro.set_imu_time_offset_ns(round(self.options.imu_time_offset_s * 1e9))
+                self._set_imu_time_offset(self.options.imu_time_offset_s)
 
     def _history_bearings(
         self,
@@ -1272,13 +1281,18 @@ class OwlEngine:
                 self._apply_time_offset(filt)
         return (("time_offset", self.clock() - t0),)
 
+    def _set_imu_time_offset(self, offset_s: float) -> None:
+        """Derotate with the IMU time offset ``offset_s`` (s) from now on."""
+        rotation = self.options.camera_to_imu_rotation_xyzw
+        self._gyro.set_calibration(rotation, round(offset_s * 1e9))
+
     def _apply_time_offset(self, filt: to.TimeOffsetFilter) -> None:
         """Derotate with the estimated offset from now on, and with the offset filter's bias,
         estimated jointly with it: the bias filter alone took the offset's leftover rotation
         for a bias (tens of mrad/s for a 30 ms offset while turning), which its gate would
         then keep it from unlearning. On ``brisk`` with the offset right the heading median
         goes 0.24 -> 0.27 deg with this; with a 30 ms offset, 0.39 deg (14 deg without)."""
-        self._gyro.set_imu_time_offset_ns(round(filt.offset_s * 1e9))
+        self._set_imu_time_offset(filt.offset_s)
         self._bias.bias = self._r_ci @ filt.x[1:]
         self._bias.cov = self._r_ci @ filt.cov[1:, 1:] @ self._r_ci.T
 

@@ -34,6 +34,7 @@ that the local error stays below 1e-12 rad.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -45,7 +46,7 @@ from owl_core.types import GyroSamples
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["DROP_REASONS", "GyroBuffer"]
+__all__ = ["DROP_REASONS", "GyroBuffer", "GyroIntake", "GyroProblem"]
 
 #: Keys of :attr:`GyroBuffer.dropped`.
 DROP_REASONS = ("non_finite", "duplicate", "out_of_order")
@@ -55,6 +56,44 @@ _GAUSS_LO = 0.5 - _SQRT3 / 6.0
 _GAUSS_HI = 0.5 + _SQRT3 / 6.0
 _STEP_TOL = 1e-12  # rad, target local error of one Magnus sub-step
 _MAX_SUBSTEPS = 64
+
+
+@dataclass(frozen=True)
+class GyroProblem:
+    """The last rejected or gap-opening sample of one :meth:`GyroBuffer.intake` call.
+
+    Attributes:
+        kind: ``"non_finite"``, ``"duplicate"``, ``"out_of_order"`` or ``"gap"``.
+        stamp_ns: the sample's stamp, IMU clock, ns.
+        prior_ns: the newest accepted stamp before it, ns (None for ``"non_finite"`` or
+            an empty buffer).
+        rate: (3,) the sample's angular rate, IMU frame, rad/s.
+    """
+
+    kind: str
+    stamp_ns: int
+    prior_ns: int | None
+    rate: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class GyroIntake:
+    """What one :meth:`GyroBuffer.intake` call did with its samples.
+
+    Attributes:
+        accepted: samples added.
+        non_finite, duplicate, out_of_order: samples rejected for that reason.
+        gaps: accepted samples more than ``max_gap_ns`` after the newest before them
+            (the buffer was emptied before each: no interpolation across a gap).
+        problem: the last rejected or gap-opening sample, or None.
+    """
+
+    accepted: int
+    non_finite: int = 0
+    duplicate: int = 0
+    out_of_order: int = 0
+    gaps: int = 0
+    problem: GyroProblem | None = None
 
 
 class GyroBuffer:
@@ -129,15 +168,6 @@ class GyroBuffer:
         """IMU stamp minus camera stamp, nanoseconds."""
         return self._offset_ns
 
-    def set_imu_time_offset_ns(self, offset_ns: int) -> None:
-        """Use another IMU time offset (ns) from now on; the held samples stay (an online
-        estimate of the offset replaces the configured one)."""
-        if isinstance(offset_ns, bool) or not isinstance(offset_ns, int | np.integer):
-            raise InvalidInputError(
-                f"imu_time_offset_ns must be an integer (nanoseconds), got {offset_ns!r}"
-            )
-        self._offset_ns = int(offset_ns)
-
     @property
     def stamps_ns(self) -> npt.NDArray[np.int64]:
         """(N,) int64 stamps of the held samples, IMU clock, nanoseconds (a copy)."""
@@ -168,6 +198,19 @@ class GyroBuffer:
         self._i0 = self._n = 0
         self.dropped = dict.fromkeys(DROP_REASONS, 0)
 
+    def set_calibration(
+        self, camera_to_imu_rotation_xyzw: npt.ArrayLike, imu_time_offset_ns: int
+    ) -> None:
+        """Use another extrinsic rotation and IMU time offset for the held samples (they are
+        stored as measured: IMU frame, IMU clock). Same checks as the constructor.
+
+        Raises:
+            CalibrationError: bad quaternion.
+            InvalidInputError: bad offset.
+        """
+        other = GyroBuffer(camera_to_imu_rotation_xyzw, imu_time_offset_ns)
+        self._rotation, self._offset_ns = other._rotation, other._offset_ns
+
     def add(self, samples: GyroSamples) -> int:
         """Append samples, rejecting bad ones (counted in :attr:`dropped`).
 
@@ -185,6 +228,27 @@ class GyroBuffer:
         Raises:
             InvalidInputError: wrong shapes or a non-integer stamp dtype.
         """
+        return self.intake(samples).accepted
+
+    def intake(self, samples: GyroSamples, max_gap_ns: float | None = None) -> GyroIntake:
+        """:meth:`add` that also never bridges a gap, and says what it rejected.
+
+        An accepted sample more than ``max_gap_ns`` after the newest accepted one before it
+        opens a gap: every sample before it is forgotten, so no rotation is ever
+        interpolated across the gap (frames spanning it are not covered). Vectorised over
+        the samples.
+
+        Args:
+            samples: ``stamp_ns`` (N,) integer ns (IMU clock), ``angular_velocity``
+                (N, 3) rad/s (IMU frame).
+            max_gap_ns: longest gap between accepted samples, ns; None: no limit.
+
+        Returns:
+            A :class:`GyroIntake` (counts, and the last problem sample).
+
+        Raises:
+            InvalidInputError: wrong shapes or a non-integer stamp dtype.
+        """
         t = np.asarray(samples.stamp_ns)
         w = np.asarray(samples.angular_velocity, dtype=np.float64)
         if t.ndim != 1 or t.dtype.kind not in "iu":
@@ -196,7 +260,7 @@ class GyroBuffer:
                 f"gyro angular_velocity must have shape ({t.shape[0]}, 3), got {w.shape}"
             )
         if t.shape[0] == 0:
-            return 0
+            return GyroIntake(0)
         t = t.astype(np.int64)
         finite = np.all(np.isfinite(w), axis=1)
         floor = np.iinfo(np.int64).min
@@ -205,11 +269,30 @@ class GyroBuffer:
         # finite stamps (a rejected stamp never exceeds it, so it cannot matter).
         prior = np.maximum.accumulate(np.concatenate([[last], np.where(finite, t, floor)]))[:-1]
         accept = finite & (t > prior)
-        self.dropped["non_finite"] += int(np.count_nonzero(~finite))
-        self.dropped["duplicate"] += int(np.count_nonzero(finite & (t == prior)))
-        self.dropped["out_of_order"] += int(np.count_nonzero(finite & (t < prior)))
+        kinds = {
+            "non_finite": ~finite,
+            "duplicate": finite & (t == prior),
+            "out_of_order": finite & (t < prior),
+            "gap": np.zeros_like(accept),
+        }
+        if max_gap_ns is not None:
+            kinds["gap"] = accept & (prior != floor) & ((t - prior) > max_gap_ns)
+        counts = {k: int(np.count_nonzero(m)) for k, m in kinds.items()}
+        for reason in DROP_REASONS:
+            self.dropped[reason] += counts[reason]
+        if counts["gap"]:
+            opened = int(np.flatnonzero(kinds["gap"])[-1])
+            self._i0 = self._n = 0  # forget what lies before the (last) gap
+            accept[:opened] = False
         self._append(t[accept], w[accept])
-        return int(np.count_nonzero(accept))
+        return GyroIntake(
+            accepted=int(np.count_nonzero(accept)),
+            non_finite=counts["non_finite"],
+            duplicate=counts["duplicate"],
+            out_of_order=counts["out_of_order"],
+            gaps=counts["gap"],
+            problem=_last_problem(kinds, t, prior, w, floor),
+        )
 
     def _append(self, t: npt.NDArray[np.int64], w: FloatArray) -> None:
         m = t.shape[0]
@@ -378,6 +461,26 @@ class GyroBuffer:
         rates_imu = np.stack([np.interp(rel_knots, rel_ts, ws[:, i]) for i in range(3)], axis=-1)
         rates_cam: FloatArray = (rates_imu - bias) @ self._rotation  # R^T w, row-wise
         return rel_knots, rates_cam
+
+
+def _last_problem(
+    kinds: dict[str, npt.NDArray[np.bool_]],
+    t: npt.NDArray[np.int64],
+    prior: npt.NDArray[np.int64],
+    w: FloatArray,
+    floor: int,
+) -> GyroProblem | None:
+    """The last sample flagged in any of ``kinds`` (masks over the N samples), or None."""
+    flagged = np.zeros(t.shape[0], dtype=bool)
+    for mask in kinds.values():
+        flagged |= mask
+    if not flagged.any():
+        return None
+    i = int(np.flatnonzero(flagged)[-1])
+    kind = next(k for k, mask in kinds.items() if mask[i])
+    p = int(prior[i])
+    rate = (float(w[i, 0]), float(w[i, 1]), float(w[i, 2]))
+    return GyroProblem(kind, int(t[i]), None if p == floor or kind == "non_finite" else p, rate)
 
 
 def _magnus_steps(

@@ -1,11 +1,12 @@
 """Node ``owl`` (executable ``owl_node``): images + IMU in, OWL point cloud and heading out.
 
-A thin node: everything is created in ``__init__``; the subscription callbacks only hand
-messages to an :class:`~owl_ros.pipeline.Inbox` (they never block); one worker thread owns
-the :class:`~owl_ros.pipeline.Pipeline` (engine, IMU buffer, queue), processes frames and
-publishes. Topics, parameters and diagnostics are described in ``docs`` / contract.md and
-``config/owl.yaml``; every parameter is declared from the one table in
-:mod:`owl_ros.params`.
+A thin node: everything is created in ``__init__``; the subscription callbacks never
+block: an image goes straight into the pipeline's one bounded frame queue (newest wins,
+:mod:`owl_ros.scheduler`), every other message into the node's :class:`Inbox`; one worker
+thread owns the :class:`~owl_ros.pipeline.Pipeline` (engine, IMU buffer), hands it the
+inbox's messages in order, processes frames and publishes. Topics, parameters and
+diagnostics are described in ``docs`` / contract.md and ``config/owl.yaml``; every
+parameter is declared from the one table in :mod:`owl_ros.params`.
 
 Subscriptions (best effort, keep last: they match drivers and replayed bags): ``image``
 (or ``image/compressed`` with ``image_transport: compressed``), ``camera_info``, ``imu``
@@ -21,11 +22,13 @@ clock.
 
 from __future__ import annotations
 
+import collections
 import signal
 import sys
 import threading
 import time
 from collections.abc import Sequence
+from enum import StrEnum
 from typing import Any
 
 import rclpy
@@ -43,6 +46,7 @@ from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu, PointCloud2
 from visualization_msgs.msg import Marker
 
+from msg_adapters.debug_image import draw_debug
 from msg_adapters.diagnostics import records_to_msg
 from msg_adapters.image import array_to_image
 from msg_adapters.stamps import header_to_ns
@@ -50,7 +54,8 @@ from owl_ros import node_report
 from owl_ros.dense_outputs import DensePublishers
 from owl_ros.extrinsic_tf import TfExtrinsic, tf_available
 from owl_ros.params import PARAMS, ParameterError, build_options, descriptor, validate
-from owl_ros.pipeline import Inbox, Output, Pipeline, draw_debug
+from owl_ros.pipeline import Output, Pipeline
+from owl_ros.roles import Role
 from owl_ros.topics import GYRO_BIAS
 
 PROG = "owl_node"
@@ -70,6 +75,78 @@ SPIN_TIMEOUT_S = 0.1
 WORKER_TICK_S = 0.05
 #: at shutdown, how long to wait for subscribers to acknowledge the last outputs, s.
 FLUSH_TIMEOUT_S = 1.0
+
+
+class Control(StrEnum):
+    """Inbox entries that are not input messages."""
+
+    OPTIONS = "options"  # new NodeOptions (parameters changed, or the rotation from TF)
+    QOS = "qos"  # the text of an incompatible-QoS event
+
+
+Kind = Role | Control
+
+
+class Inbox:
+    """Thread-safe, ordered hand-over of the non-image inputs from the callbacks to the
+    worker (images go to the pipeline's frame queue).
+
+    IMU, camera_info, speed messages and control entries wait in one deque bounded
+    generously (``capacity``; the oldest is dropped when full, counted in ``dropped``) so
+    memory stays bounded even if the worker stalls. ``drain`` hands them over in the order
+    they were put; ``wait`` lets the worker sleep until something arrives.
+    """
+
+    def __init__(self, capacity: int = 20000) -> None:
+        self._lock = threading.Lock()
+        self._event = threading.Event()
+        self._items: collections.deque[tuple[Kind, Any, int]] = collections.deque(maxlen=capacity)
+        self.dropped = 0
+
+    def put(self, kind: Kind, msg: Any, arrival_ns: int) -> None:
+        """Store one entry (the oldest gives way when full)."""
+        with self._lock:
+            if len(self._items) == self._items.maxlen:
+                self.dropped += 1
+            self._items.append((kind, msg, arrival_ns))
+        self._event.set()
+
+    def wait(self, timeout_s: float) -> None:
+        """Sleep until something is put (or :meth:`wake`) or ``timeout_s`` passes."""
+        self._event.wait(timeout_s)
+        self._event.clear()
+
+    def wake(self) -> None:
+        """Wake a waiting worker (an image was queued, or to stop it)."""
+        self._event.set()
+
+    def drain(self) -> list[tuple[Kind, Any, int]]:
+        """Every entry ``(kind, message, arrival ns)``, in the order put."""
+        with self._lock:
+            items = list(self._items)
+            self._items.clear()
+        return items
+
+
+def feed(pipeline: Pipeline, entries: Sequence[tuple[Kind, Any, int]]) -> list[Output]:
+    """Hand inbox entries to the pipeline in order (runs of IMU messages in one batch);
+    returns the outputs of frames processed out of turn (before an IMU time jump)."""
+    outs: list[Output] = []
+    imus: list[Any] = []
+    for i, (kind, msg, arrival_ns) in enumerate(entries):
+        if kind is Role.IMU:
+            imus.append(msg)
+            if i + 1 < len(entries) and entries[i + 1][0] is Role.IMU:
+                continue
+            outs += pipeline.add_imus(imus, arrival_ns)
+            imus = []
+        elif kind is Control.OPTIONS:
+            pipeline.reconfigure(msg)
+        elif kind is Control.QOS:
+            pipeline.note_qos_event(msg)
+        else:
+            outs += pipeline.add(kind, msg, arrival_ns)
+    return outs
 
 
 def _sensor_qos(depth: int) -> QoSProfile:
@@ -131,8 +208,8 @@ class OwlNode(Node):
         self.options = build_options(values)
         self._values = values
         self._lock = threading.Lock()
-        self._inbox = Inbox(self.options.queue_size)
-        self._pipeline = Pipeline(self.options)
+        self._inbox = Inbox()
+        self._pipeline = Pipeline(self.options, clock=time.monotonic_ns)
         self._calibration_logged = False
         self._stop = threading.Event()
 
@@ -205,11 +282,11 @@ class OwlNode(Node):
 
     def _announce(self) -> None:
         """Log the start-up line; choose the extrinsic source; prepare the silence watch."""
-        roles = ("image", "camera_info", "imu", "speed")
-        self._topics = {
+        roles = (Role.IMAGE, Role.CAMERA_INFO, Role.IMU, Role.SPEED)
+        self._topics: dict[Role, str] = {
             role: sub.topic_name for role, (sub, _) in zip(roles, self._inputs, strict=False)
         }
-        self._frames: dict[str, str] = {}  # role -> header.frame_id of its first message
+        self._frames: dict[Role, str] = {}  # role -> header.frame_id of its first message
         self._tf: TfExtrinsic | None = None
         log = self.get_logger()
         rotation = self.options.engine.camera_to_imu_rotation_xyzw
@@ -234,7 +311,7 @@ class OwlNode(Node):
 
     def _check_tf(self) -> None:
         """Once the image's and the IMU's frame_id are known, take the rotation from TF."""
-        cam, imu = self._frames.get("image"), self._frames.get("imu")
+        cam, imu = self._frames.get(Role.IMAGE), self._frames.get(Role.IMU)
         if self._tf is None or not cam or not imu:
             return
         found = self._tf.lookup(cam, imu)
@@ -255,7 +332,7 @@ class OwlNode(Node):
             options = build_options(values)
             self._values = values
             self.options = options
-        self._inbox.put("options", options, time.monotonic_ns())
+        self._inbox.put(Control.OPTIONS, options, time.monotonic_ns())
         self.get_logger().info(
             f"camera_to_imu_rotation_xyzw {list(found)} from TF ({imu} -> {cam})"
         )
@@ -299,23 +376,24 @@ class OwlNode(Node):
             f"{info.total_count} total)"
         )
         self.get_logger().warning(text)
-        self._inbox.put("qos", text, time.monotonic_ns())
+        self._inbox.put(Control.QOS, text, time.monotonic_ns())
 
     # ------------------------------------------------------------------ callbacks
 
     def _on_image(self, msg: Any) -> None:
-        self._frames.setdefault("image", msg.header.frame_id)
-        self._inbox.put_image(msg, time.monotonic_ns())
+        self._frames.setdefault(Role.IMAGE, msg.header.frame_id)
+        self._pipeline.add_image(msg, time.monotonic_ns())  # thread-safe: only queues
+        self._inbox.wake()
 
     def _on_camera_info(self, msg: Any) -> None:
-        self._inbox.put("camera_info", msg, time.monotonic_ns())
+        self._inbox.put(Role.CAMERA_INFO, msg, time.monotonic_ns())
 
     def _on_imu(self, msg: Any) -> None:
-        self._frames.setdefault("imu", msg.header.frame_id)
-        self._inbox.put("imu", msg, time.monotonic_ns())
+        self._frames.setdefault(Role.IMU, msg.header.frame_id)
+        self._inbox.put(Role.IMU, msg, time.monotonic_ns())
 
     def _on_speed(self, msg: Any) -> None:
-        self._inbox.put("speed", msg, time.monotonic_ns())
+        self._inbox.put(Role.SPEED, msg, time.monotonic_ns())
 
     def _on_set_parameters(self, params: Sequence[Any]) -> SetParametersResult:
         changes = {p.name: _param_value(p.value) for p in params}
@@ -335,7 +413,7 @@ class OwlNode(Node):
             self.options = options
             if "camera_to_imu_rotation_xyzw" in known:
                 self._tf = None  # the parameter overrides TF
-        self._inbox.put("options", options, time.monotonic_ns())
+        self._inbox.put(Control.OPTIONS, options, time.monotonic_ns())
         return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------ worker
@@ -343,11 +421,11 @@ class OwlNode(Node):
     def _run(self) -> None:
         diag_period_ns = round(self.options.diagnostics_period_s * 1e9)
         next_diag = time.monotonic_ns() + diag_period_ns
-        self._pipeline.start_window(time.monotonic_ns())
+        self._pipeline.start_window()
         busy = False  # a frame was taken last step: more may be ready, do not sleep
         while not self._stop.is_set():
             now = time.monotonic_ns()
-            deadline = self._pipeline.next_deadline_ns()
+            deadline = self._pipeline.deadline_ns()
             timeout = WORKER_TICK_S
             if deadline is not None:
                 timeout = min(timeout, max((deadline - now) * 1e-9, 0.001))
@@ -372,16 +450,15 @@ class OwlNode(Node):
         """Hand over what arrived, then process at most one frame and publish its outputs
         at once (a newer frame arriving meanwhile is seen before the next one is taken).
         Returns whether a frame was taken from the queue."""
-        events, dropped = self._inbox.drain()
         pipeline = self._pipeline
-        pipeline.add_events(events)
-        pipeline.count_dropped(dropped)
-        before = pipeline.pending_count
+        for out in feed(pipeline, self._inbox.drain()):
+            self._publish(out)  # frames from before an IMU time jump
+        before = pipeline.frames_taken
         start = time.monotonic_ns()
-        outs = pipeline.poll(start, limit=1)
+        outs = pipeline.poll(limit=1)
         for out in outs:
             self._publish(out)
-        taken = pipeline.pending_count < before
+        taken = pipeline.frames_taken > before
         if taken and outs:
             pipeline.record_cycle((time.monotonic_ns() - start) * 1e-9)
         return taken
@@ -407,15 +484,17 @@ class OwlNode(Node):
             self._dense.publish(out, self._pipeline.engine, self._pipeline.camera)
 
     def _publish_diagnostics(self, now_mono_ns: int) -> None:
-        records = self._pipeline.diagnostics(now_mono_ns, self._foreign_publishers())
+        records = self._pipeline.diagnostics(self._foreign_publishers())
         verdict = self._pipeline.calibration_verdict
         if verdict is not None and verdict.disagrees and not self._calibration_logged:
             self._calibration_logged = True  # once: /diagnostics keeps saying it
             self.get_logger().warning(f"camera-IMU calibration: {verdict.message}")
         records += [self._dense.stage.status()] if self._dense is not None else []
         records = node_report.name_inputs(records, self._topics, self.get_fully_qualified_name())
+        totals = self._pipeline.totals
+        received = {role: totals.received(role) for role in self._topics}
         for line in self._watch.check(
-            now_mono_ns * 1e-9, self._pipeline.totals, node_report.empty_reason(records)
+            now_mono_ns * 1e-9, received, node_report.empty_reason(records)
         ):
             self.get_logger().warning(line)
         self._check_tf()

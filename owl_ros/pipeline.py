@@ -1,29 +1,36 @@
 """The message -> engine -> message path shared by node ``owl`` and ``owl_process``.
 
 No DDS here: the caller hands in ROS messages (rclpy classes) with the time they arrived
-on its own clock (the node: monotonic wall time; ``owl_process``: the bag's log time), and
-gets back what to publish. Everything that touches the engine runs in one thread (the
-node's worker); :class:`Inbox` is the thread-safe hand-over from the subscription
-callbacks, which never block.
+on its clock (the node: monotonic time; ``owl_process``: the bag's log time), the same
+clock the pipeline is given to tell the time, and gets back what to publish. Everything
+that touches the engine runs in one thread; only :meth:`Pipeline.add_image` may be called
+from another (it only queues).
+
+The parts, one job each:
+
+- :class:`~owl_ros.scheduler.Scheduler`: the one bounded frame queue (newest wins) and the
+  rule saying when its oldest frame is ready;
+- :class:`~owl_ros.timejump.TimeJumps`: the one place that detects backwards time;
+- :class:`~owl_core.gyro.GyroBuffer`: the one IMU store, and its sanitation (NaN/inf
+  rates, duplicate and out-of-order stamps dropped and counted, never interpolated across a
+  gap longer than ``imu_max_gap_s``), vectorised; it lives as long as the pipeline and is
+  handed to every engine built (a reconfigure keeps the IMU history);
+- :class:`~owl_ros.counters.Counters`: the counts the diagnostics publish;
+- :func:`~owl_ros.status.build_status`: the diagnostics, from one snapshot.
 
 What :class:`Pipeline` does per input:
 
 - ``camera_info``: converted once per distinct calibration; an invalid one (zero focal
   length, unknown distortion model) is reported and frames are skipped until a valid one
   arrives; a changed calibration rebuilds the engine.
-- ``imu``: samples with NaN/inf rates, duplicate or out-of-order stamps are dropped and
-  counted; a gap longer than ``imu_max_gap_s`` is never interpolated across (frames whose
-  interval spans it count as not covered); a stamp more than ``max_frame_gap_s`` older
-  than the newest one is a backwards time jump (bag loop, sim clock restart): frames
-  queued from before it are processed first, then the engine is reset and a diagnostic
-  says so. A ring buffer of the last seconds of good samples re-feeds a rebuilt engine.
-- ``image`` / ``image/compressed``: queued (at most ``queue_size``; when full the oldest
-  is dropped and counted: the newest frame wins). A queued frame is processed once the IMU
-  covers the interval since the previous frame, or after ``imu_wait_s`` (then the engine
-  flags or skips it, per ``require_gyro``), or at once when the IMU already passed its
-  stamp with a gap, has gone silent, or the next frame filled the queue. A bad image
-  (unknown encoding, step too small, wrong data length, size differing from camera_info)
-  is skipped with a reason naming the field and value; a stamp going backwards resets the engine.
+- ``imu``: to the gyro buffer. A stamp more than ``max_frame_gap_s`` older than the newest
+  one is a backwards time jump (bag loop, sim clock restart): the frames queued from before
+  it are processed first (their outputs are returned by :meth:`Pipeline.add_imus`), then
+  the engine is reset and a diagnostic says so.
+- ``image`` / ``image/compressed``: queued; processed once ready (see
+  :mod:`owl_ros.scheduler`). A bad image (unknown encoding, step too small, wrong data
+  length, size differing from camera_info) is skipped with a reason naming the field and
+  value; a stamp going backwards resets the engine.
 - speed (``nav_msgs/Odometry`` or ``geometry_msgs/TwistStamped``): the speed nearest the
   image stamp (within ``speed_max_age_s``, at least ``min_speed``) scales x y z to metres
   and the cloud's ``speed`` field says so (``msg_adapters.pointcloud``).
@@ -36,14 +43,12 @@ points; the reason is in diagnostics) with the input image's header, and an
 from __future__ import annotations
 
 import collections
-import heapq
 import math
-import threading
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -59,20 +64,21 @@ from owl_core.camera import CameraModel
 from owl_core.engine import OwlEngine
 from owl_core.errors import OwlError
 from owl_core.geometry import quat_xyzw_to_matrix
-from owl_core.types import FrameResult, GyroSamples, PointFlag
-from owl_ros.debug_legend import draw_legend
+from owl_core.gyro import GyroBuffer, GyroProblem
+from owl_core.types import FrameResult, GyroSamples, ImageFrame
+from owl_ros.counters import Counters, Skip
 from owl_ros.params import NodeOptions
+from owl_ros.roles import Role
+from owl_ros.scheduler import Frame, Probe, Scheduler
 from owl_ros.status import StatusInputs, build_status
+from owl_ros.timejump import ImageStamp, Jump, TimeJumps
 
-__all__ = ["Inbox", "Output", "Pipeline", "draw_debug"]
+__all__ = ["Output", "Pipeline"]
 
 #: IMU considered silent (no waiting for it) when nothing arrived for this long, ns.
 IMU_SILENT_NS = 1_000_000_000
-#: seconds of good IMU samples kept to re-feed a rebuilt engine.
-IMU_RING_S = 2.0
 #: speed messages kept.
 SPEED_KEEP = 400
-#: name prefix of the diagnostic statuses.
 
 
 @dataclass(frozen=True)
@@ -87,6 +93,8 @@ class Output:
         header: the input image's std_msgs/Header.
         speed: m/s used to scale x y z to metres, or None (cloud in seconds).
         arrival_ns: when the image arrived, on the caller's clock, ns.
+        heading_cov: geometry_msgs/TwistWithCovarianceStamped for
+            owl/heading_with_covariance, or None.
         gyro_bias: geometry_msgs/Vector3Stamped for owl/gyro_bias: the engine's bias
             estimate after this frame, rad/s, IMU frame (stamp = the image's), or None
             when it is not finite.
@@ -99,22 +107,16 @@ class Output:
     header: Any
     speed: float | None
     arrival_ns: int
-    heading_cov: Any | None = None  # TwistWithCovarianceStamped (owl/heading_with_covariance)
-    gyro_bias: Any = None  # Vector3Stamped (owl/gyro_bias)
-
-
-@dataclass
-class _Pending:
-    msg: Any
-    arrival_ns: int
+    heading_cov: Any | None = None
+    gyro_bias: Any = None
 
 
 @dataclass
 class _Window:
-    """Counts and samples since the last diagnostics report."""
+    """Samples since the last diagnostics report (the counts are ``totals.since(base)``)."""
 
     start_ns: int | None = None
-    counts: collections.Counter[str] = field(default_factory=collections.Counter)
+    base: Counters = field(default_factory=Counters)
     process_s: list[float] = field(default_factory=list)
     latency_s: list[float] = field(default_factory=list)
     cycle_s: list[float] = field(default_factory=list)
@@ -122,69 +124,15 @@ class _Window:
     points: list[int] = field(default_factory=list)
 
 
-class Inbox:
-    """Thread-safe hand-over from subscription callbacks to the worker (never blocks long).
+@dataclass
+class _Notes:
+    """The newest text of each kind of problem, for diagnostics ("" for none)."""
 
-    Images are kept in a bounded deque (``image_capacity``; the oldest is dropped when
-    full and counted in ``dropped_images``); IMU, camera_info and speed messages in deques
-    bounded generously (``other_capacity``) so memory stays bounded even if the worker
-    stalls. ``drain`` hands everything over in the order it was put, across kinds: a
-    backwards time jump is then seen after the images taken before it, not before them.
-    ``wait`` lets the worker sleep until something arrives.
-    """
-
-    def __init__(self, image_capacity: int, other_capacity: int = 20000) -> None:
-        self._lock = threading.Lock()
-        self._event = threading.Event()
-        self._seq = 0  # put order across both deques
-        self._images: collections.deque[tuple[int, str, Any, int]] = collections.deque(
-            maxlen=image_capacity
-        )
-        self._other: collections.deque[tuple[int, str, Any, int]] = collections.deque(
-            maxlen=other_capacity
-        )
-        self.dropped_images = 0
-        self.dropped_other = 0
-
-    def put_image(self, msg: Any, arrival_ns: int) -> None:
-        """Store an image (newest wins when full)."""
-        with self._lock:
-            if len(self._images) == self._images.maxlen:
-                self.dropped_images += 1
-            self._seq += 1
-            self._images.append((self._seq, "image", msg, arrival_ns))
-        self._event.set()
-
-    def put(self, kind: str, msg: Any, arrival_ns: int) -> None:
-        """Store a non-image message: kind is "imu", "camera_info", "speed", "options" or
-        "qos"."""
-        with self._lock:
-            if len(self._other) == self._other.maxlen:
-                self.dropped_other += 1
-            self._seq += 1
-            self._other.append((self._seq, kind, msg, arrival_ns))
-        self._event.set()
-
-    def wait(self, timeout_s: float) -> None:
-        """Sleep until something is put or ``timeout_s`` passes."""
-        self._event.wait(timeout_s)
-        self._event.clear()
-
-    def wake(self) -> None:
-        """Wake a waiting worker (e.g. to stop it)."""
-        self._event.set()
-
-    def drain(self) -> tuple[list[tuple[str, Any, int]], int]:
-        """((kind, message, arrival ns) in put order, images being kind "image"; images
-        dropped since the last drain)."""
-        with self._lock:
-            other = list(self._other)
-            images = list(self._images)
-            self._other.clear()
-            self._images.clear()
-            dropped, self.dropped_images = self.dropped_images, 0
-        merged = heapq.merge(other, images)  # both are in put order; seq is unique
-        return [(kind, msg, arrival) for _, kind, msg, arrival in merged], dropped
+    empty_reason: str = ""
+    bad_image: str = ""
+    imu_problem: str = ""
+    jump: str = ""
+    qos_events: list[str] = field(default_factory=list)
 
 
 def _speed_of(msg: Any) -> tuple[int, float]:
@@ -194,37 +142,73 @@ def _speed_of(msg: Any) -> tuple[int, float]:
     return header_to_ns(msg.header), math.sqrt(v.x * v.x + v.y * v.y + v.z * v.z)
 
 
+def _camera_key(msg: Any) -> tuple[Any, ...]:
+    """Everything of a CameraInfo that the camera model depends on."""
+    return (
+        int(msg.width),
+        int(msg.height),
+        str(msg.distortion_model),
+        tuple(float(v) for v in msg.k),
+        tuple(float(v) for v in msg.d),
+        tuple(float(v) for v in msg.p),
+        int(msg.binning_x),
+        int(msg.binning_y),
+        int(msg.roi.x_offset),
+        int(msg.roi.y_offset),
+        int(msg.roi.width),
+        int(msg.roi.height),
+    )
+
+
+def imu_problem_text(problem: GyroProblem) -> str:
+    """The diagnostics line for a rejected or gap-opening IMU sample."""
+    if problem.kind == "non_finite":
+        return f"imu.angular_velocity not finite: {list(problem.rate)}"
+    prior = problem.prior_ns if problem.prior_ns is not None else problem.stamp_ns
+    if problem.kind == "gap":
+        return (
+            f"IMU gap of {(problem.stamp_ns - prior) * 1e-6:.1f} ms before "
+            f"{problem.stamp_ns} ns (> imu_max_gap_s)"
+        )
+    return f"imu stamp {problem.stamp_ns} ns not after {prior} ns ({problem.kind})"
+
+
 class Pipeline:
     """Messages in, FrameResults and output messages out (see the module docstring).
 
     Args:
         options: node options (engine options included).
+        clock: the current time, ns, on the clock of the arrival times the caller gives
+            (default: monotonic time).
     """
 
-    def __init__(self, options: NodeOptions | None = None) -> None:
-        self.options = options if options is not None else NodeOptions()
+    def __init__(
+        self, options: NodeOptions | None = None, clock: Callable[[], int] = time.monotonic_ns
+    ) -> None:
+        self.options = opts = options if options is not None else NodeOptions()
+        #: the injected clock (read it; the scheduler shares it).
+        self.clock = clock
+        self._scheduler = Scheduler(opts.queue_size, opts.imu_wait_s, clock)
+        self._jumps = TimeJumps(round(opts.engine.max_frame_gap_s * 1e9))
+        eng = opts.engine
+        self._gyro = GyroBuffer(
+            eng.camera_to_imu_rotation_xyzw, round(eng.imu_time_offset_s * 1e9)
+        )
         self._engine: OwlEngine | None = None
         self._camera: CameraModel | None = None
         self._camera_key: tuple[Any, ...] | None = None
         self._camera_error: str | None = None
-        self._pending: collections.deque[_Pending] = collections.deque()
-        self._ready: list[Output] = []  # processed outside poll (before a time jump)
-        self._ring: collections.deque[tuple[int, tuple[float, float, float]]] = collections.deque()
-        self._newest_imu_ns: int | None = None
+        self._calibration: CalibrationMonitor | None = None
         self._imu_arrival_ns: int | None = None
         self._imu_frame_id = ""  # of the newest IMU message: the frame of owl/gyro_bias
-        self._last_stamp: int | None = None
         self._speeds: collections.deque[tuple[int, float]] = collections.deque(maxlen=SPEED_KEEP)
-        #: totals since start, by key (see diagnostics()).
-        self.totals: collections.Counter[str] = collections.Counter()
+        #: counts since start (see :class:`~owl_ros.counters.Counters`).
+        self.totals = Counters()
+        #: frames taken from the queue since start (processed or skipped).
+        self.frames_taken = 0
         self._window = _Window()
-        self._last_empty_reason = ""
-        self._last_bad_image = ""
-        self._last_imu_problem = ""
-        self._last_jump = ""
-        self._qos_events: list[str] = []
+        self._notes = _Notes()
         self._last_result: FrameResult | None = None
-        self._calibration: CalibrationMonitor | None = None
 
     # ------------------------------------------------------------------ state
 
@@ -239,25 +223,32 @@ class Pipeline:
         return self._camera
 
     @property
-    def pending(self) -> int:
-        """Frames waiting for processing."""
-        return len(self._pending)
+    def gyro(self) -> GyroBuffer:
+        """The IMU history (the one buffer every engine of this pipeline uses)."""
+        return self._gyro
 
-    def _count(self, key: str, n: int = 1) -> None:
-        self.totals[key] += n
-        self._window.counts[key] += n
+    @property
+    def pending(self) -> int:
+        """Frames queued, not yet processed."""
+        return len(self._scheduler.queue)
+
+    @property
+    def calibration_verdict(self) -> MonitorVerdict | None:
+        """The live calibration check's latest verdict (None before enough motion)."""
+        return self._calibration.last if self._calibration is not None else None
+
+    def deadline_ns(self) -> int | None:
+        """When the oldest queued frame stops waiting for IMU (clock time, ns), or None."""
+        return self._scheduler.deadline_ns()
 
     def _rebuild_engine(self) -> None:
+        self._jumps.forget_image()
         if self._camera is None:
             self._engine = None
             return
-        self._engine = OwlEngine(self._camera, self.options.engine)
+        eng = self.options.engine
+        self._engine = OwlEngine(self._camera, eng, gyro=self._gyro)
         self._calibration = self._calibration_monitor()
-        if self._ring:
-            stamps = np.fromiter((s for s, _ in self._ring), dtype=np.int64, count=len(self._ring))
-            rates = np.array([w for _, w in self._ring], dtype=np.float64).reshape(-1, 3)
-            self._engine.add_gyro(GyroSamples(stamp_ns=stamps, angular_velocity=rates))
-        self._last_stamp = None
 
     def _calibration_monitor(self) -> CalibrationMonitor | None:
         """The live calibration check for the configured extrinsic (None when switched off
@@ -276,67 +267,67 @@ class Pipeline:
         (tracks reset, IMU history kept)."""
         old = self.options
         self.options = options
+        self._jumps.tolerance_ns = round(options.engine.max_frame_gap_s * 1e9)
         if options.engine != old.engine:
             self._rebuild_engine()
-            self._count("reconfigured")
+            self.totals.reconfigured += 1
         elif options.calibration_check != old.calibration_check:
             self._calibration = self._calibration_monitor()
-        while len(self._pending) > options.queue_size:
-            self._pending.popleft()
-            self._count("dropped_queue_full")
+        self._scheduler.configure(options.queue_size, options.imu_wait_s)
 
-    def _time_jump(self, what: str) -> None:
+    def _time_jump(self, jump: Jump) -> None:
         """Backwards time jump: reset everything that holds time."""
-        self._last_jump = what
-        self._count("time_jumps")
-        self._ring.clear()
-        self._newest_imu_ns = None
-        self._last_stamp = None
+        self._notes.jump = jump.what
+        self.totals.time_jumps += 1
+        self._jumps.reset()
         self._speeds.clear()
         if self._engine is not None:
-            self._engine.reset()
+            self._engine.reset()  # the gyro buffer too
+        self._gyro.reset()
         if self._calibration is not None:
             self._calibration.reset()
 
-    def _process_before_jump(self, after_ns: int, now_ns: int) -> None:
-        """The IMU jumped back: queued frames stamped after ``after_ns`` are from before the
-        jump, and all their IMU arrived before it. Process them now, while the engine still
-        has that timeline; their outputs wait in ``_ready`` for the next :meth:`poll`."""
-        old: collections.deque[_Pending] = collections.deque()
-        rest: collections.deque[_Pending] = collections.deque()
-        for p in self._pending:
-            (old if self._stamp_or_zero(p.msg) > after_ns else rest).append(p)
-        if not old:
-            return
-        self._pending = old
-        self._ready = self.poll(now_ns, flush=True)  # (with what was ready already)
-        self._pending = rest
+    def _before_jump(self, jump: Jump) -> list[Output]:
+        """The IMU jumped back: queued frames stamped after ``jump.before_ns`` are from
+        before the jump, and all their IMU arrived before it. Process them now, while the
+        engine still has that timeline."""
+
+        def old(frame: Frame) -> bool:
+            return (frame.stamp_ns if frame.stamp_ns is not None else 0) > jump.before_ns
+
+        outs = []
+        for frame in self._scheduler.queue.take_where(old):
+            self.frames_taken += 1
+            out = self._handle(frame, self._probe(frame))
+            if out is not None:
+                outs.append(out)
+        return outs
 
     def note_qos_event(self, text: str) -> None:
         """Record a QoS problem (e.g. an incompatible publisher/subscriber) for diagnostics."""
-        self._count("qos_events")
-        self._qos_events.append(text)
-        del self._qos_events[:-5]
+        self.totals.qos_events += 1
+        self._notes.qos_events.append(text)
+        del self._notes.qos_events[:-5]
 
     # ------------------------------------------------------------------ inputs
 
+    def add(self, role: Role, msg: Any, arrival_ns: int) -> list[Output]:
+        """One input message of ``role``; returns the outputs of frames it made ready out
+        of turn (those queued before a backwards IMU time jump), else []."""
+        if role is Role.IMU:
+            return self.add_imus([msg], arrival_ns)
+        if role is Role.IMAGE:
+            self.add_image(msg, arrival_ns)
+        elif role is Role.CAMERA_INFO:
+            self.add_camera_info(msg)
+        else:
+            self.add_speed(msg)
+        return []
+
     def add_camera_info(self, msg: Any) -> None:
         """A sensor_msgs/CameraInfo (converted once per distinct calibration)."""
-        self._count("camera_info")
-        key = (
-            int(msg.width),
-            int(msg.height),
-            str(msg.distortion_model),
-            tuple(float(v) for v in msg.k),
-            tuple(float(v) for v in msg.d),
-            tuple(float(v) for v in msg.p),
-            int(msg.binning_x),
-            int(msg.binning_y),
-            int(msg.roi.x_offset),
-            int(msg.roi.y_offset),
-            int(msg.roi.width),
-            int(msg.roi.height),
-        )
+        self.totals.camera_info += 1
+        key = _camera_key(msg)
         if key == self._camera_key:
             return
         self._camera_key = key
@@ -344,258 +335,165 @@ class Pipeline:
             model = camera_info_to_model(msg, rectified=self.options.rectified)
         except (ValueError, OwlError) as err:
             self._camera_error = str(err)
-            self._count("bad_camera_info")
+            self.totals.bad_camera_info += 1
             self._camera = None
             self._engine = None
             return
         self._camera_error = None
         if model != self._camera:
             if self._camera is not None:
-                self._count("camera_changed")
+                self.totals.camera_changed += 1
             self._camera = model
             self._rebuild_engine()
 
-    def add_imu(self, msg: Any, arrival_ns: int) -> None:
-        """A sensor_msgs/Imu (REP 145; only angular_velocity is used)."""
-        self.add_imus([msg], arrival_ns)
+    def add_imus(self, msgs: Sequence[Any], arrival_ns: int) -> list[Output]:
+        """sensor_msgs/Imu messages (REP 145; only angular_velocity is used) in arrival
+        order, handed to the gyro buffer in one batch.
 
-    def add_imus(self, msgs: Sequence[Any], arrival_ns: int) -> None:
-        """sensor_msgs/Imu messages in arrival order, handed to the engine in one batch."""
+        Returns:
+            The outputs of the frames queued from before a backwards time jump among the
+            samples (processed before the reset), else [].
+        """
         if not msgs:
-            return
+            return []
         self._imu_arrival_ns = arrival_ns
         self._imu_frame_id = str(msgs[-1].header.frame_id)
         try:
             samples = imus_to_gyro(msgs)
         except ValueError as err:
             if len(msgs) > 1:  # find the bad one(s); keep the others
-                for msg in msgs:
-                    self.add_imus([msg], arrival_ns)
-                return
-            self._count("imu")
-            self._count("imu_invalid")
-            self._last_imu_problem = str(err)
-            return
-        self._count("imu", len(msgs))
-        stamps = samples.stamp_ns
-        rates = samples.angular_velocity
-        finite = np.all(np.isfinite(rates), axis=1)
-        keep: list[int] = []
-        for i in range(stamps.shape[0]):
-            stamp = int(stamps[i])
-            if not finite[i]:
-                self._count("imu_non_finite")
-                self._last_imu_problem = f"imu.angular_velocity not finite: {rates[i].tolist()}"
-                continue
-            newest = self._newest_imu_ns
-            if newest is not None and stamp <= newest:
-                jump_ns = round(self.options.engine.max_frame_gap_s * 1e9)
-                if stamp >= newest - jump_ns:
-                    key = "imu_duplicate" if stamp == newest else "imu_out_of_order"
-                    self._count(key)
-                    self._last_imu_problem = (
-                        f"imu stamp {stamp} ns not after {newest} ns ({key[4:]})"
-                    )
-                    continue
-                self._feed(stamps, rates, keep)
-                self._process_before_jump(stamp + jump_ns, arrival_ns)
-                self._time_jump(
-                    f"IMU stamp went back {(newest - stamp) * 1e-9:.3f} s ({stamp} ns after "
-                    f"{newest} ns): engine reset"
-                )
-            elif newest is not None and stamp - newest > self.options.imu_max_gap_s * 1e9:
-                # never interpolate across a gap: frames spanning it are not covered
-                self._feed(stamps, rates, keep)
-                self._count("imu_gaps")
-                self._last_imu_problem = (
-                    f"IMU gap of {(stamp - newest) * 1e-6:.1f} ms before {stamp} ns "
-                    "(> imu_max_gap_s)"
-                )
-                self._ring.clear()
-                if self._engine is not None:
-                    self._engine.gyro.reset()
-            self._newest_imu_ns = stamp
-            keep.append(i)
-        self._feed(stamps, rates, keep)
+                return [out for msg in msgs for out in self.add_imus([msg], arrival_ns)]
+            self.totals.imu += 1
+            self.totals.imu_invalid += 1
+            self._notes.imu_problem = str(err)
+            return []
+        self.totals.imu += len(msgs)
+        stamps, rates = samples.stamp_ns, samples.angular_velocity
+        outs: list[Output] = []
+        for run in self._jumps.imu_runs(stamps, np.all(np.isfinite(rates), axis=1)):
+            if run.jump is not None:
+                outs += self._before_jump(run.jump)
+                self._time_jump(run.jump)
+            part = slice(run.start, run.stop)
+            self._take_gyro(GyroSamples(stamps[part], rates[part]))
+        return outs
 
-    def _feed(
-        self, stamps: npt.NDArray[np.int64], rates: npt.NDArray[np.float64], keep: list[int]
-    ) -> None:
-        """Accepted samples ``keep`` (indices, cleared here) -> ring buffer and engine."""
-        if not keep:
-            return
-        idx = np.asarray(keep, dtype=np.int64)
-        keep.clear()
-        good_t, good_w = stamps[idx], rates[idx]
-        self._ring.extend(zip(good_t.tolist(), map(tuple, good_w.tolist()), strict=True))
-        horizon = int(good_t[-1]) - round(IMU_RING_S * 1e9)
-        while self._ring and self._ring[0][0] < horizon:
-            self._ring.popleft()
-        if self._engine is not None:
-            self._engine.add_gyro(GyroSamples(stamp_ns=good_t, angular_velocity=good_w))
+    def add_imu(self, msg: Any, arrival_ns: int) -> list[Output]:
+        """One sensor_msgs/Imu (see :meth:`add_imus`)."""
+        return self.add_imus([msg], arrival_ns)
+
+    def _take_gyro(self, samples: GyroSamples) -> None:
+        intake = self._gyro.intake(samples, max_gap_ns=self.options.imu_max_gap_s * 1e9)
+        t = self.totals
+        t.imu_non_finite += intake.non_finite
+        t.imu_duplicate += intake.duplicate
+        t.imu_out_of_order += intake.out_of_order
+        t.imu_gaps += intake.gaps
+        if intake.problem is not None:
+            self._notes.imu_problem = imu_problem_text(intake.problem)
 
     def add_speed(self, msg: Any) -> None:
         """A nav_msgs/Odometry or geometry_msgs/TwistStamped (speed = |linear velocity|)."""
-        self._count("speed")
+        self.totals.speed += 1
         try:
             stamp, speed = _speed_of(msg)
         except ValueError:
-            self._count("speed_invalid")
+            self.totals.speed_invalid += 1
             return
         if not math.isfinite(speed):
-            self._count("speed_invalid")
+            self.totals.speed_invalid += 1
             return
         self._speeds.append((stamp, speed))
 
     def add_image(self, msg: Any, arrival_ns: int) -> None:
-        """A sensor_msgs/Image or CompressedImage; queued (newest wins when full)."""
-        self._count("images")
-        if len(self._pending) >= self.options.queue_size:
-            self._pending.popleft()
-            self._count("dropped_queue_full")
-        self._pending.append(_Pending(msg, arrival_ns))
-
-    def add_events(self, events: Sequence[tuple[str, Any, int]]) -> None:
-        """Messages in arrival order, as ``(kind, message, arrival ns)`` with kind "image",
-        "imu", "camera_info", "speed", "options" (NodeOptions) or "qos" (text); runs of IMU
-        messages go to the engine in one batch."""
-        imus: list[Any] = []
-        for i, (kind, msg, arrival_ns) in enumerate(events):
-            if kind == "imu":
-                imus.append(msg)
-                if i + 1 < len(events) and events[i + 1][0] == "imu":
-                    continue
-                self.add_imus(imus, arrival_ns)
-                imus = []
-            elif kind == "image":
-                self.add_image(msg, arrival_ns)
-            elif kind == "camera_info":
-                self.add_camera_info(msg)
-            elif kind == "speed":
-                self.add_speed(msg)
-            elif kind == "options":
-                self.reconfigure(msg)
-            elif kind == "qos":
-                self.note_qos_event(msg)
-            else:
-                raise ValueError(f"unknown inbox message kind {kind!r}")
-
-    def count_dropped(self, n: int) -> None:
-        """Images dropped before they reached the pipeline (the node's inbox was full)."""
-        if n:
-            self.totals["images"] += n
-            self._window.counts["images"] += n
-            self._count("dropped_queue_full", n)
+        """A sensor_msgs/Image or CompressedImage; queued (newest wins when full).
+        Thread-safe: the only method that may be called from another thread."""
+        self._scheduler.put(msg, arrival_ns)
 
     # ------------------------------------------------------------------ processing
 
-    def _imu_live(self, now_ns: int) -> bool:
-        return self._imu_arrival_ns is not None and now_ns - self._imu_arrival_ns < IMU_SILENT_NS
+    def _count_queue(self) -> None:
+        received, dropped = self._scheduler.queue.counts()
+        self.totals.images += received
+        self.totals.dropped_queue_full += dropped
 
-    @property
-    def pending_count(self) -> int:
-        """Frames queued, not yet processed."""
-        return len(self._pending)
+    def _probe(self, frame: Frame) -> Probe:
+        """What the readiness rule needs to know about ``frame``'s inputs."""
+        engine = self._engine
+        if engine is None:
+            return Probe(engine=False, camera_failed=self._camera_error is not None)
+        if frame.stamp_ns is None:
+            return Probe(engine=True)
+        newest = self._jumps.newest_imu_ns
+        arrived = self._imu_arrival_ns
+        return Probe(
+            engine=True,
+            covered=engine.covers(frame.stamp_ns),
+            # a rolling shutter's last row is seen a readout after the stamp
+            passed=newest is not None
+            and newest - self._gyro.imu_time_offset_ns > frame.stamp_ns + engine.readout_ns,
+            imu_live=arrived is not None and self.clock() - arrived < IMU_SILENT_NS,
+        )
 
-    def poll(self, now_ns: int, flush: bool = False, limit: int | None = None) -> list[Output]:
-        """Process the queued frames that are ready (see the module docstring).
+    def poll(self, flush: bool = False, limit: int | None = None) -> list[Output]:
+        """Process the queued frames that are ready (see :mod:`owl_ros.scheduler`).
 
         Args:
-            now_ns: the caller's current time, on the clock of ``arrival_ns``, ns.
             flush: process every queued frame now (end of a bag, shutdown).
             limit: take at most this many frames from the queue (processed or skipped);
                 None: all that are ready.
 
         Returns:
-            One Output per processed frame, in order (first any processed before a time
-            jump since the last call).
+            One Output per processed frame, in order.
         """
-        outs, self._ready = self._ready, []
+        self._count_queue()
         if self._window.start_ns is None:
-            self._window.start_ns = now_ns
-        wait_ns = round(self.options.imu_wait_s * 1e9)
+            self._window.start_ns = self.clock()
+        outs = []
         taken = 0
-        while self._pending and (limit is None or taken < limit):
-            item = self._pending[0]
-            engine = self._engine
-            if engine is None:
-                if not flush and self._camera_error is None and now_ns - item.arrival_ns < wait_ns:
-                    break  # camera_info may be just behind its image
-                self._pending.popleft()
-                taken += 1
-                if self._camera_error is not None:
-                    self._skip("no_camera_info", f"no valid camera_info: {self._camera_error}")
-                else:
-                    self._skip("no_camera_info", "no camera_info received yet")
-                continue
-            stamp = self._stamp_of(item.msg)
-            if stamp is None:
-                self._pending.popleft()
-                taken += 1
-                continue
-            covered = engine.covers(stamp)
-            if not covered and not flush:
-                offset = engine.gyro.imu_time_offset_ns
-                last_row = stamp + engine.readout_ns  # a rolling shutter's last row
-                passed = (
-                    self._newest_imu_ns is not None and self._newest_imu_ns - offset > last_row
-                )
-                waiting = now_ns - item.arrival_ns < wait_ns
-                # a full queue ends the wait (the next frame is there already)
-                full = len(self._pending) >= self.options.queue_size > 1
-                if waiting and not passed and not full and self._imu_live(now_ns):
-                    break
-            self._pending.popleft()
+        while limit is None or taken < limit:
+            got = self._scheduler.take(self._probe, flush)
+            if got is None:
+                break
             taken += 1
-            out = self._process(item, stamp, covered)
+            self.frames_taken += 1
+            out = self._handle(*got)
             if out is not None:
                 outs.append(out)
         return outs
 
-    def next_deadline_ns(self) -> int | None:
-        """When the oldest queued frame stops waiting for IMU (caller's clock), or None."""
-        if not self._pending:
+    def _handle(self, frame: Frame, probe: Probe) -> Output | None:
+        """A frame taken from the queue: skipped with its reason, or processed."""
+        if not probe.engine:
+            error = self._camera_error
+            why = f"no valid camera_info: {error}" if error is not None else None
+            self._skip(Skip.NO_CAMERA_INFO, why or "no camera_info received yet")
             return None
-        return self._pending[0].arrival_ns + round(self.options.imu_wait_s * 1e9)
-
-    def _skip(self, key: str, reason: str) -> None:
-        self._count("skipped_" + key)
-        self._last_empty_reason = reason
-        if key == "bad_image":
-            self._last_bad_image = reason
-
-    @staticmethod
-    def _stamp_or_zero(msg: Any) -> int:
-        try:
-            return header_to_ns(msg.header)
-        except ValueError:
-            return 0
-
-    def _stamp_of(self, msg: Any) -> int | None:
-        try:
-            return header_to_ns(msg.header)
-        except ValueError as err:
-            self._skip("bad_image", f"image header: {err}")
+        if frame.stamp_ns is None:
+            self._skip(Skip.BAD_IMAGE, f"image header: {frame.stamp_error}")
             return None
+        return self._process(frame, frame.stamp_ns, probe.covered)
+
+    def _skip(self, skip: Skip, reason: str) -> None:
+        self.totals.count_skip(skip)
+        self._notes.empty_reason = reason
+        if skip is Skip.BAD_IMAGE:
+            self._notes.bad_image = reason
 
     def _speed_for(self, stamp: int) -> float | None:
         if self.options.speed_source == "none" or not self._speeds:
             return None
         best = min(self._speeds, key=lambda s: abs(s[0] - stamp))
         if abs(best[0] - stamp) > self.options.speed_max_age_s * 1e9:
-            self._count("speed_stale")
+            self.totals.speed_stale += 1
             return None
         if best[1] < self.options.min_speed or best[1] <= 0:
-            self._count("speed_too_low")
+            self.totals.speed_too_low += 1
             return None
         return best[1]
 
-    def _process(self, item: _Pending, stamp: int, covered: bool) -> Output | None:
-        engine = self._engine
-        camera = self._camera
-        if engine is None or camera is None:
-            return None
-        msg = item.msg
+    def _to_frame(self, msg: Any, camera: CameraModel) -> ImageFrame | None:
+        """The engine's input from an image message, or None (skipped: bad image)."""
         bits = self.options.significant_bits
         try:
             if hasattr(msg, "format"):
@@ -603,71 +501,85 @@ class Pipeline:
             else:
                 frame = image_to_frame(msg, bits)
         except (ValueError, OwlError) as err:
-            self._skip("bad_image", str(err))
+            self._skip(Skip.BAD_IMAGE, str(err))
             return None
         h, w = frame.image.shape
         if (w, h) != (camera.width, camera.height):
             self._skip(
-                "bad_image",
+                Skip.BAD_IMAGE,
                 f"image size {w}x{h} (image.width x image.height) differs from camera_info "
                 f"{camera.width}x{camera.height}",
             )
             return None
-        if self._last_stamp is not None and stamp <= self._last_stamp:
-            if stamp == self._last_stamp:
-                self._skip("duplicate_stamp", f"image stamp {stamp} ns repeated")
-                return None
-            self._time_jump(
-                f"image stamp went back {(self._last_stamp - stamp) * 1e-9:.3f} s ({stamp} ns "
-                f"after {self._last_stamp} ns): engine reset"
-            )
-            covered = engine.covers(stamp)
+        return frame
+
+    def _run_engine(self, engine: OwlEngine, image: ImageFrame) -> FrameResult | None:
         try:
-            result = engine.process(frame)
+            return engine.process(image)
         except OwlError as err:
-            self._skip("engine_error", f"engine: {err}")
+            self._skip(Skip.ENGINE_ERROR, f"engine: {err}")
             return None
         except Exception as err:  # never let one frame stop the node; say what happened
-            self._skip("engine_error", f"engine: {type(err).__name__}: {err}")
-            self._last_stamp = None
+            self._skip(Skip.ENGINE_ERROR, f"engine: {type(err).__name__}: {err}")
+            self._jumps.forget_image()
             engine.reset()
             return None
-        self._last_stamp = stamp
+
+    def _process(self, frame: Frame, stamp: int, covered: bool) -> Output | None:
+        engine = self._engine
+        camera = self._camera
+        if engine is None or camera is None:
+            return None
+        image = self._to_frame(frame.msg, camera)
+        if image is None:
+            return None
+        order = self._jumps.check_image(stamp)
+        if order is ImageStamp.DUPLICATE:
+            self._skip(Skip.DUPLICATE_STAMP, f"image stamp {stamp} ns repeated")
+            return None
+        if order is ImageStamp.BACKWARDS:
+            self._time_jump(self._jumps.image_jump(stamp))
+            covered = engine.covers(stamp)
+        result = self._run_engine(engine, image)
+        if result is None:
+            return None
+        self._jumps.image_processed(stamp)
         self._last_result = result
         if self._calibration is not None:  # images vs gyro (owl_core.calib_check)
-            gyro = engine.gyro
             self._calibration.update(
                 engine.last_tracks,
-                GyroSamples(gyro.stamps_ns, gyro.rates_imu),
+                GyroSamples(self._gyro.stamps_ns, self._gyro.rates_imu),
                 engine.gyro_bias,
             )
         if not covered:
-            self._count("frames_imu_not_covered")
-        self._count("processed")
+            self.totals.frames_imu_not_covered += 1
+        return self._output(frame, stamp, image.image, result)
+
+    def _output(
+        self, frame: Frame, stamp: int, grey: npt.NDArray[np.uint8], result: FrameResult
+    ) -> Output:
+        """The messages of one processed frame (and its counts)."""
+        t = self.totals
+        t.processed += 1
         self._window.process_s.append(result.timings.get("total", math.nan))
         self._window.points.append(result.num_points)
         speed = self._speed_for(stamp)
-        header = msg.header
+        header = frame.msg.header
         cloud = frame_result_to_cloud(result, header, speed=speed)
-        heading = None
+        heading = cov = bias = None
         if result.heading is not None:
             heading = heading_to_msg(result.heading, header)
-            self._count("headings")
+            t.headings += 1
+            if np.isfinite(result.heading_sigma_rad):
+                cov = heading_to_twist_covariance(result.heading, result.heading_sigma_rad, header)
         if result.num_points:
-            self._count("frames_with_points")
-            if speed is not None:
-                self._count("frames_metric")
+            t.frames_with_points += 1
+            t.frames_metric += int(speed is not None)
         else:
-            self._last_empty_reason = "; ".join(result.reasons) or "no points"
-        cov = None
-        if heading is not None and np.isfinite(result.heading_sigma_rad):
-            cov = heading_to_twist_covariance(result.heading, result.heading_sigma_rad, header)
-        bias = None
+            self._notes.empty_reason = "; ".join(result.reasons) or "no points"
         if np.isfinite(result.gyro_bias).all():
             bias = gyro_bias_to_msg(result.gyro_bias, make_header(stamp, self._imu_frame_id))
-        return Output(
-            result, cloud, heading, frame.image, header, speed, item.arrival_ns, cov, bias
-        )
+        return Output(result, cloud, heading, grey, header, speed, frame.arrival_ns, cov, bias)
 
     def record_latency(self, latency_s: float, stamp_latency_s: float | None = None) -> None:
         """Record one frame's arrival -> publication latency (and image stamp ->
@@ -684,27 +596,29 @@ class Pipeline:
     # ------------------------------------------------------------------ diagnostics
 
     def diagnostics(
-        self, now_ns: int, wrong_type: Sequence[str] = (), reset_window: bool = True
+        self, wrong_type: Sequence[str] = (), reset_window: bool = True
     ) -> list[StatusRecord]:
-        """Status records for /diagnostics over the window since the last call.
+        """Status records for /diagnostics over the window since the last call (which the
+        clock's time now closes).
 
         Three statuses: ``owl: input`` (rates, drops, bad input, QoS, publishers of the
         wrong type), ``owl: processing`` (frames, points, timing, latency, reason for empty
         output, time jumps) and ``owl: gyro`` (bias estimate, IMU coverage).
 
         Args:
-            now_ns: monotonic time of the call, ns (closes the rate window).
             wrong_type: one text per publisher on an input topic whose message type is not
                 the subscribed one (the node finds them in the ROS graph).
             reset_window: start a new rate window.
         """
-        win = self._window
+        now_ns = self.clock()
+        self._count_queue()
+        win, notes = self._window, self._notes
         engine = self._engine
         result = self._last_result
         snapshot = StatusInputs(
             span_s=(now_ns - win.start_ns) * 1e-9 if win.start_ns is not None else math.nan,
-            counts=win.counts,
-            totals=self.totals,
+            counts=self.totals.since(win.base),
+            totals=self.totals.copy(),
             points=win.points,
             process_s=win.process_s,
             cycle_s=win.cycle_s,
@@ -713,11 +627,11 @@ class Pipeline:
             camera_known=self._camera is not None,
             camera_error=self._camera_error,
             wrong_type=tuple(wrong_type),
-            last_bad_image=self._last_bad_image,
-            last_imu_problem=self._last_imu_problem,
-            last_empty_reason=self._last_empty_reason,
-            last_jump=self._last_jump,
-            qos_events=tuple(self._qos_events),
+            last_bad_image=notes.bad_image,
+            last_imu_problem=notes.imu_problem,
+            last_empty_reason=notes.empty_reason,
+            last_jump=notes.jump,
+            qos_events=tuple(notes.qos_events),
             heading_sigma_rad=result.heading_sigma_rad if result is not None else math.nan,
             gyro_bias=engine.gyro_bias if engine is not None else np.zeros(3),
             gyro_bias_sigma=engine.gyro_bias_sigma if engine is not None else np.full(3, math.nan),
@@ -731,57 +645,9 @@ class Pipeline:
         )
         records = build_status(snapshot)
         if reset_window:
-            self._window = _Window(start_ns=now_ns)
+            self._window = _Window(start_ns=now_ns, base=self.totals.copy())
         return records
 
-    @property
-    def calibration_verdict(self) -> MonitorVerdict | None:
-        """The live calibration check's latest verdict (None before enough motion)."""
-        return self._calibration.last if self._calibration is not None else None
-
-    def start_window(self, now_ns: int) -> None:
-        """Start the first diagnostics window at ``now_ns`` (caller's clock)."""
-        self._window.start_ns = now_ns
-
-
-def draw_debug(
-    grey: npt.NDArray[np.uint8], result: FrameResult, camera: CameraModel | None
-) -> npt.NDArray[np.uint8]:
-    """The owl/debug_image picture: (H, W, 3) uint8 BGR.
-
-    Each point is a 5x5 dot coloured by r/|t| (red near, blue far, on a log scale between
-    0.5 and 20 s); suspected moving points are magenta with a white centre; the heading
-    (focus of expansion) is a green cross in a circle when it lies in front of the camera;
-    a colour legend sits in the bottom-left corner (owl_ros.debug_legend). Drawing is
-    vectorised (no loop over points).
-    """
-    img = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
-    h, w = grey.shape
-    n = result.num_points
-    if n:
-        range_over_speed = np.clip(
-            np.asarray(result.range_over_speed, dtype=np.float64), 0.5, 20.0
-        )
-        level = np.log(range_over_speed / 0.5) / math.log(40.0)  # 0 near .. 1 far
-        lut = cv2.applyColorMap(
-            np.round(255 * (1.0 - level)).astype(np.uint8).reshape(-1, 1), cv2.COLORMAP_JET
-        ).reshape(-1, 3)
-        moving = (result.flags & np.uint8(PointFlag.MOVING)) != 0
-        lut[moving] = (255, 0, 255)
-        uv = np.rint(result.pixels).astype(np.int64)
-        offs = np.arange(-2, 3)
-        du, dv = np.meshgrid(offs, offs)
-        us = np.clip(uv[:, 0, None] + du.reshape(1, -1), 0, w - 1)
-        vs = np.clip(uv[:, 1, None] + dv.reshape(1, -1), 0, h - 1)
-        img[vs, us] = lut[:, None, :]
-        centre_u = np.clip(uv[moving, 0], 0, w - 1)
-        centre_v = np.clip(uv[moving, 1], 0, h - 1)
-        img[centre_v, centre_u] = (255, 255, 255)
-    if result.heading is not None and camera is not None and result.heading[2] > 0:
-        foe = camera.bearing_to_pixel(np.asarray(result.heading, dtype=np.float64)[None])[0]
-        if np.all(np.isfinite(foe)):
-            c = (round(float(foe[0])), round(float(foe[1])))
-            size = max(6, min(h, w) // 20)
-            cv2.circle(img, c, size, (0, 255, 0), 2)
-            cv2.drawMarker(img, c, (0, 255, 0), cv2.MARKER_CROSS, 2 * size, 2)
-    return draw_legend(img)  # the colour key, bottom left
+    def start_window(self) -> None:
+        """Start the first diagnostics window now (the clock's time)."""
+        self._window.start_ns = self.clock()

@@ -59,6 +59,7 @@ from owl_ros.params import (
     to_values,
 )
 from owl_ros.pipeline import Output, Pipeline
+from owl_ros.roles import Role
 from owl_ros.topics import (
     DIAGNOSTICS,
     GYRO_BIAS,
@@ -171,23 +172,29 @@ def tf_rotation(
     return None
 
 
-def _check_topics(bag: BagReader, opts: ProcessOptions) -> dict[str, str]:
+#: the message types each input role accepts.
+ROLE_TYPES: dict[Role, tuple[str, ...]] = {
+    Role.IMAGE: IMAGE_TYPES,
+    Role.CAMERA_INFO: ("sensor_msgs/msg/CameraInfo",),
+    Role.IMU: ("sensor_msgs/msg/Imu",),
+    Role.SPEED: SPEED_TYPES,
+}
+
+
+def _check_topics(bag: BagReader, opts: ProcessOptions) -> dict[str, Role]:
+    """topic -> role of the topics to read; ProcessError when one is missing or of the
+    wrong type."""
     topics = bag.topics
     have = ", ".join(sorted(topics)) or "no topics"
-    wanted = {"image": opts.image_topic, "camera_info": opts.camera_info_topic}
+    wanted = {Role.IMAGE: opts.image_topic, Role.CAMERA_INFO: opts.camera_info_topic}
     if opts.imu_topic:
-        wanted["imu"] = opts.imu_topic
+        wanted[Role.IMU] = opts.imu_topic
     if opts.speed_topic:
-        wanted["speed"] = opts.speed_topic
-    expected = {
-        "image": IMAGE_TYPES,
-        "camera_info": ("sensor_msgs/msg/CameraInfo",),
-        "imu": ("sensor_msgs/msg/Imu",),
-        "speed": SPEED_TYPES,
-    }
+        wanted[Role.SPEED] = opts.speed_topic
+    expected = ROLE_TYPES
     for role, topic in wanted.items():
         if topic not in topics:
-            hint = f" ({NO_IMU_HINT})" if role == "imu" else ""
+            hint = f" ({NO_IMU_HINT})" if role is Role.IMU else ""
             raise ProcessError(
                 f"{role} topic {topic} is not in bag {bag.path} (has: {have}){hint}"
             )
@@ -248,7 +255,7 @@ class _Run:
         writer: BagWriter,
         opts: ProcessOptions,
         node_opts: NodeOptions,
-        roles: dict[str, str],
+        roles: dict[str, Role],
         copy: list[str],
     ) -> None:
         from rclpy.serialization import deserialize_message
@@ -258,7 +265,8 @@ class _Run:
         self.node_opts = node_opts
         self.roles = roles
         self.copy = set(copy)
-        self.pipeline = Pipeline(node_opts)
+        self.now_ns = bag.start_ns  # the pipeline's clock: the log time of the newest message
+        self.pipeline = Pipeline(node_opts, clock=lambda: self.now_ns)
         self.classes = {t: message_class(bag.topics[t].msgtype) for t in roles}
         self.deserialize = deserialize_message
         self.transforms: list[Any] = []
@@ -302,10 +310,11 @@ class _Run:
                 for reason in o.result.reasons or ("no points",):
                     self.reasons[reason.split(" (")[0].split(":")[0]] += 1
 
-    def diagnostics(self, now_ns: int) -> None:
-        """Write the pipeline's /diagnostics at bag time ``now_ns``."""
+    def diagnostics(self) -> None:
+        """Write the pipeline's /diagnostics at the bag time now."""
+        now_ns = self.now_ns
         extra = [self.dense.stage.status()] if self.dense is not None else []
-        msg = records_to_msg(self.pipeline.diagnostics(now_ns) + extra, now_ns)
+        msg = records_to_msg(self.pipeline.diagnostics() + extra, now_ns)
         self.writer.write(DIAGNOSTICS.bag, max(now_ns, 0), msg)
 
     def _camera_info(self, msg: Any) -> None:
@@ -319,27 +328,23 @@ class _Run:
             self.decided = True
         self.pipeline.add_camera_info(msg)
 
-    def _dispatch(self, raw: RawMessage, role: str) -> None:
+    def _dispatch(self, raw: RawMessage, role: Role) -> None:
         try:
             msg = self.deserialize(raw.data, self.classes[raw.topic])
         except Exception:  # a damaged message: skip it, count it
             self.undecodable[raw.topic] += 1
             return
-        if role == "imu":
-            if self.imu_frame is None:
-                self.imu_frame = msg.header.frame_id
-            self.pipeline.add_imu(msg, raw.log_time_ns)
-        elif role == "camera_info":
+        if role is Role.IMU and self.imu_frame is None:
+            self.imu_frame = msg.header.frame_id
+        if role is Role.CAMERA_INFO:
             self._camera_info(msg)
-        elif role == "speed":
-            self.pipeline.add_speed(msg)
-        else:
-            self.pipeline.add_image(msg, raw.log_time_ns)
+        else:  # outputs of frames processed before an IMU time jump
+            self.emit(self.pipeline.add(role, msg, raw.log_time_ns))
 
     def handle(self, raw: RawMessage) -> None:
         """One bag message: to the pipeline (or the tf buffer), copied when asked; then
         the pipeline's ready outputs and, every diagnostics period, its diagnostics."""
-        now = raw.log_time_ns
+        now = self.now_ns = raw.log_time_ns
         role = self.roles.get(raw.topic)
         if raw.topic == TF_STATIC and not self.decided:
             self.transforms.extend(self.bag.deserialize(raw).transforms)
@@ -347,11 +352,11 @@ class _Run:
             self._dispatch(raw, role)
         if raw.topic in self.copy:
             self.writer.write_raw(raw.topic, now, raw.data)
-        self.emit(self.pipeline.poll(now))
+        self.emit(self.pipeline.poll())
         if self.next_diag is None:
             self.next_diag = now + self.period_ns
         elif now >= self.next_diag:
-            self.diagnostics(now)
+            self.diagnostics()
             self.next_diag = now + self.period_ns
 
 
@@ -427,10 +432,11 @@ def process_bag(
                 damage = str(err)
             if damage is None and bag.damage is not None:
                 damage = f"truncated or corrupt bag {bag.path}: {bag.damage}"
-            run.emit(run.pipeline.poll(last_ns, flush=True))
-            run.diagnostics(last_ns)
+            run.now_ns = last_ns
+            run.emit(run.pipeline.poll(flush=True))
+            run.diagnostics()
             report(done, run.frames, True)
-            totals = dict(run.pipeline.totals)
+            totals = run.pipeline.totals.as_dict()
             totals.update({f"undecodable {t}": n for t, n in run.undecodable.items()})
     return Summary(
         out_path=out,

@@ -10,7 +10,6 @@ DDS tests read them): keep them.
 
 from __future__ import annotations
 
-import collections
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -20,10 +19,9 @@ import numpy.typing as npt
 
 from msg_adapters.diagnostics import Level, StatusRecord
 from owl_core.calib_check import MonitorVerdict
+from owl_ros.counters import Counters
 
 DIAG_PREFIX = "owl"
-#: IMU samples dropped for these reasons are reported as ``<key>_total``.
-IMU_DROP_KEYS = ("imu_non_finite", "imu_duplicate", "imu_out_of_order")
 
 
 def _percentile(values: Sequence[float], q: float) -> float:
@@ -40,8 +38,8 @@ class StatusInputs:
 
     Attributes:
         span_s: length of the window, s (NaN before the first window started).
-        counts: counter increments in the window, by key.
-        totals: counters since start, by key.
+        counts: counter increments in the window.
+        totals: counters since start.
         points: points per processed frame in the window.
         process_s, cycle_s, latency_s, stamp_latency_s: per-frame engine time, worker
             cycle, arrival -> publication and image stamp -> publication, s, in the window.
@@ -63,8 +61,8 @@ class StatusInputs:
     """
 
     span_s: float
-    counts: collections.Counter[str]
-    totals: collections.Counter[str]
+    counts: Counters
+    totals: Counters
     points: Sequence[int] = ()
     process_s: Sequence[float] = ()
     cycle_s: Sequence[float] = ()
@@ -87,9 +85,9 @@ class StatusInputs:
     imu_time_offset_s: float = math.nan
     imu_time_offset_sigma_s: float = math.nan
 
-    def rate(self, key: str) -> float:
-        """Window count of ``key`` per second (NaN for an empty window)."""
-        return self.counts[key] / self.span_s if self.span_s > 0 else math.nan
+    def rate(self, count: int) -> float:
+        """A window count per second (NaN for an empty window)."""
+        return count / self.span_s if self.span_s > 0 else math.nan
 
 
 def build_status(s: StatusInputs) -> list[StatusRecord]:
@@ -111,17 +109,17 @@ def _input_problems(s: StatusInputs) -> tuple[Level, list[str]]:
         level = Level.ERROR
         problems.append(f"wrong message type: {s.wrong_type[0]}")
     warnings = []
-    if c["images"] == 0:
+    if c.images == 0:
         warnings.append("no images")
-    if c["imu"] == 0:
+    if c.imu == 0:
         warnings.append("no IMU")
-    if c["skipped_bad_image"]:
+    if c.skipped_bad_image:
         warnings.append(f"bad image: {s.last_bad_image}")
-    if c["imu_non_finite"] + c["imu_duplicate"] + c["imu_out_of_order"] + c["imu_invalid"]:
+    if c.imu_non_finite + c.imu_duplicate + c.imu_out_of_order + c.imu_invalid:
         warnings.append(f"bad IMU samples dropped: {s.last_imu_problem}")
-    elif c["imu_gaps"]:
+    elif c.imu_gaps:
         warnings.append(s.last_imu_problem)
-    if c["qos_events"]:
+    if c.qos_events:
         warnings.append(f"QoS: {s.qos_events[-1]}")
     if warnings:
         level = max(level, Level.WARN)
@@ -137,20 +135,22 @@ def input_status(s: StatusInputs) -> StatusRecord:
         level,
         "; ".join(problems) if problems else "inputs OK",
         {
-            "image_rate_hz": s.rate("images"),
-            "imu_rate_hz": s.rate("imu"),
-            "camera_info_rate_hz": s.rate("camera_info"),
-            "speed_rate_hz": s.rate("speed"),
-            "images_total": t["images"],
-            "imu_total": t["imu"],
-            "bad_images_total": t["skipped_bad_image"],
+            "image_rate_hz": s.rate(s.counts.images),
+            "imu_rate_hz": s.rate(s.counts.imu),
+            "camera_info_rate_hz": s.rate(s.counts.camera_info),
+            "speed_rate_hz": s.rate(s.counts.speed),
+            "images_total": t.images,
+            "imu_total": t.imu,
+            "bad_images_total": t.skipped_bad_image,
             "last_bad_image": s.last_bad_image,
             "camera_info_error": s.camera_error or "",
-            "imu_invalid_total": t["imu_invalid"],
-            "imu_gaps_total": t["imu_gaps"],
-            **{f"{k}_total": t[k] for k in IMU_DROP_KEYS},
+            "imu_invalid_total": t.imu_invalid,
+            "imu_gaps_total": t.imu_gaps,
+            "imu_non_finite_total": t.imu_non_finite,
+            "imu_duplicate_total": t.imu_duplicate,
+            "imu_out_of_order_total": t.imu_out_of_order,
             "last_imu_problem": s.last_imu_problem,
-            "qos_events_total": t["qos_events"],
+            "qos_events_total": t.qos_events,
             "qos_last_event": s.qos_events[-1] if s.qos_events else "",
             "wrong_type_publishers": "; ".join(s.wrong_type),
         },
@@ -159,24 +159,24 @@ def input_status(s: StatusInputs) -> StatusRecord:
 
 def _processing_message(s: StatusInputs) -> tuple[Level, str]:
     c = s.counts
-    dropped = c["dropped_queue_full"]
+    dropped = c.dropped_queue_full
     level = Level.OK
-    if c["processed"] == 0 or c["frames_with_points"] == 0 or dropped or c["time_jumps"]:
+    if c.processed == 0 or c.frames_with_points == 0 or dropped or c.time_jumps:
         level = Level.WARN
-    if c["processed"] == 0:
-        if c["images"] == 0:
+    if c.processed == 0:
+        if c.images == 0:
             message = "no frames processed: no images received"
         else:
             why = s.last_empty_reason or "waiting for IMU/camera_info"
             message = f"no frames processed: {why}"
-    elif c["frames_with_points"]:
+    elif c.frames_with_points:
         mean_points = float(np.mean(s.points)) if s.points else 0
-        message = f"{s.rate('processed'):.1f} frames/s, {mean_points:.0f} points/frame"
+        message = f"{s.rate(c.processed):.1f} frames/s, {mean_points:.0f} points/frame"
     else:
         message = f"no points: {s.last_empty_reason or 'no frames processed'}"
     if dropped:
         message += f"; {dropped} frames dropped (queue full, newest wins)"
-    if c["time_jumps"]:
+    if c.time_jumps:
         message += f"; time jump: {s.last_jump}"
     return level, message
 
@@ -190,11 +190,11 @@ def processing_status(s: StatusInputs) -> StatusRecord:
         level,
         message,
         {
-            "processed_rate_hz": s.rate("processed"),
-            "frames_processed_total": t["processed"],
-            "frames_with_points_total": t["frames_with_points"],
-            "frames_metric_total": t["frames_metric"],
-            "headings_total": t["headings"],
+            "processed_rate_hz": s.rate(s.counts.processed),
+            "frames_processed_total": t.processed,
+            "frames_with_points_total": t.frames_with_points,
+            "frames_metric_total": t.frames_metric,
+            "headings_total": t.headings,
             "points_per_frame_mean": _mean(s.points),
             "processing_ms_mean": 1e3 * _mean(s.process_s),
             "processing_ms_max": 1e3 * max(s.process_s) if s.process_s else math.nan,
@@ -203,12 +203,12 @@ def processing_status(s: StatusInputs) -> StatusRecord:
             "latency_ms_p95": 1e3 * _percentile(s.latency_s, 95),
             "stamp_to_publish_ms_p50": 1e3 * _percentile(s.stamp_latency_s, 50),
             "stamp_to_publish_ms_p95": 1e3 * _percentile(s.stamp_latency_s, 95),
-            "dropped_queue_full_total": t["dropped_queue_full"],
-            "skipped_no_camera_info_total": t["skipped_no_camera_info"],
-            "skipped_bad_image_total": t["skipped_bad_image"],
-            "skipped_duplicate_stamp_total": t["skipped_duplicate_stamp"],
-            "skipped_engine_error_total": t["skipped_engine_error"],
-            "time_jumps_total": t["time_jumps"],
+            "dropped_queue_full_total": t.dropped_queue_full,
+            "skipped_no_camera_info_total": t.skipped_no_camera_info,
+            "skipped_bad_image_total": t.skipped_bad_image,
+            "skipped_duplicate_stamp_total": t.skipped_duplicate_stamp,
+            "skipped_engine_error_total": t.skipped_engine_error,
+            "time_jumps_total": t.time_jumps,
             "last_time_jump": s.last_jump,
             "last_empty_reason": s.last_empty_reason,
             "heading_sigma_deg": math.degrees(s.heading_sigma_rad),
@@ -221,8 +221,8 @@ def gyro_status(s: StatusInputs) -> StatusRecord:
     """``owl: gyro``: the bias estimate and its sigma, frames without IMU coverage."""
     c = s.counts
     bias = s.gyro_bias
-    gaps = c["frames_imu_not_covered"]
-    level = Level.WARN if gaps or (c["imu"] == 0 and c["images"]) else Level.OK
+    gaps = c.frames_imu_not_covered
+    level = Level.WARN if gaps or (c.imu == 0 and c.images) else Level.OK
     message = f"bias [{bias[0]:.4g}, {bias[1]:.4g}, {bias[2]:.4g}] rad/s"
     if gaps:
         message += f"; {gaps} frames without full IMU coverage"
@@ -244,7 +244,7 @@ def gyro_status(s: StatusInputs) -> StatusRecord:
             "bias_y_rad_s": float(bias[1]),
             "bias_z_rad_s": float(bias[2]),
             "bias_sigma_rad_s": float(np.max(s.gyro_bias_sigma)),
-            "frames_imu_not_covered_total": s.totals["frames_imu_not_covered"],
+            "frames_imu_not_covered_total": s.totals.frames_imu_not_covered,
             "require_gyro": s.require_gyro,
             "imu_time_offset_s": s.imu_time_offset_s,
             "imu_time_offset_sigma_s": s.imu_time_offset_sigma_s,

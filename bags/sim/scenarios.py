@@ -588,9 +588,9 @@ def _brisk(street: tuple[Rect, ...]) -> Scenario:
     )
 
 
-def _build() -> dict[str, Scenario]:
-    street = tuple(_street_scene())
-    out = [
+def _motion_scenarios(street: tuple[Rect, ...]) -> list[Scenario]:
+    """The scenarios of the paper's kinds of motion (translation, turns, movers)."""
+    return [
         Scenario(
             "cube",
             "the paper's first experiment: a textured cube (and ground) seen by a camera in "
@@ -644,6 +644,12 @@ def _build() -> dict[str, Scenario]:
             street,
             Trajectory(polynomial_path(_H, (0, 0, 0)), _street_rotation(0.3, 0.1)),
         ),
+    ]
+
+
+def _special_scenarios(street: tuple[Rect, ...]) -> list[Scenario]:
+    """Calibration recordings, a still camera, and the realistic bench motions."""
+    return [
         Scenario(
             "pan_only",
             "street, camera standing still and panning (yaw +-0.3 rad) about one axis only: "
@@ -707,8 +713,12 @@ def _build() -> dict[str, Scenario]:
             Trajectory(polynomial_path((40.0, 0.0, CAMERA_HEIGHT), (-3.0, 0.0, 0.0)), _NO_ROT),
         ),
     ]
-    out.append(_brisk(street))
-    return {s.name: s for s in out}
+
+
+def _build() -> dict[str, Scenario]:
+    street = tuple(_street_scene())
+    scenes = _motion_scenarios(street) + _special_scenarios(street) + [_brisk(street)]
+    return {s.name: s for s in scenes}
 
 
 _SCENARIOS = _build()

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from owl_core.errors import CalibrationError, InvalidInputError, TimeError
 from owl_core.geometry import so3_exp
-from owl_core.gyro import GyroBuffer
+from owl_core.gyro import GyroBuffer, GyroProblem
 from owl_core.types import GyroSamples
 
 # Camera looking along IMU x (IMU x forward, y left, z up), from the contract.
@@ -173,6 +173,50 @@ def test_drops_are_counted() -> None:
     buf.reset()
     assert len(buf) == 0 and buf.dropped == {"non_finite": 0, "duplicate": 0, "out_of_order": 0}
     assert buf.camera_span_ns is None and not buf.covers(0, 0)
+
+
+def test_intake_reports_what_it_rejected_and_never_bridges_a_gap() -> None:
+    buf = GyroBuffer()
+    stamps = np.array([10, 20, 20, 15, 30, 90, 100, 95]) * MS
+    rates = np.zeros((8, 3))
+    rates[4] = (np.nan, 1.0, 2.0)  # 30 ms: non-finite
+    got = buf.intake(_samples(stamps, rates), max_gap_ns=50 * MS)
+    # 90 ms opens a gap (70 ms after 20 ms): what lies before it is forgotten
+    assert (got.accepted, got.non_finite, got.duplicate, got.out_of_order, got.gaps) == (
+        2,
+        1,
+        1,
+        2,
+        1,
+    )
+    np.testing.assert_array_equal(buf.stamps_ns, np.array([90, 100]) * MS)
+    assert not buf.covers(20 * MS, 95 * MS) and buf.covers(90 * MS, 100 * MS)
+    # the last problem, in sample order: 95 ms after 100 ms
+    assert got.problem == GyroProblem("out_of_order", 95 * MS, 100 * MS, (0.0, 0.0, 0.0))
+    last = buf.intake(_samples(np.array([100, 160]) * MS, np.ones((2, 3))), 50 * MS)
+    assert last.gaps == 1 and last.duplicate == 1
+    assert last.problem == GyroProblem("gap", 160 * MS, 100 * MS, (1.0, 1.0, 1.0))
+    assert len(buf) == 1
+    nan = buf.intake(_samples(np.array([170]) * MS, np.array([[np.inf, 0.0, 0.0]])))
+    assert nan.problem == GyroProblem("non_finite", 170 * MS, None, (np.inf, 0.0, 0.0))
+    # no limit: any gap is bridged (add() is intake() without one)
+    assert buf.intake(_samples(np.array([10_000]) * MS, np.zeros((1, 3)))).gaps == 0
+    assert len(buf) == 2
+
+
+def test_set_calibration_reads_the_held_samples_anew() -> None:
+    buf = GyroBuffer()
+    t = T_START + np.arange(0, 101) * MS
+    buf.add(_samples(t, np.tile([0.0, 0.0, 0.5], (t.size, 1))))
+    before = buf.mean_rate_camera(int(t[0]), int(t[-1]))
+    np.testing.assert_allclose(before, [0.0, 0.0, 0.5], atol=1e-12)
+    buf.set_calibration(Q_FORWARD, 10 * MS)
+    assert buf.imu_time_offset_ns == 10 * MS and len(buf) == 101
+    np.testing.assert_allclose(buf.camera_to_imu_rotation, R_CAM_TO_IMU, atol=1e-12)
+    after = buf.mean_rate_camera(int(t[0]), int(t[-1]) - 10 * MS)
+    np.testing.assert_allclose(after, R_CAM_TO_IMU.T @ [0.0, 0.0, 0.5], atol=1e-12)
+    with pytest.raises(CalibrationError):
+        buf.set_calibration((0.0, 0.0, 0.0, 2.0), 0)
 
 
 def test_capacity_bounds_memory_and_keeps_newest() -> None:

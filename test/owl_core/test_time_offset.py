@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from owl_core.errors import InvalidInputError
-from owl_core.gyro import GyroBuffer
 from owl_core.time_offset import TimeOffsetFilter, TimeOffsetOptions
 
 SIGMA = 1e-3  # rad/s, per-component noise of a frame's leftover rotation
@@ -74,11 +73,3 @@ def test_gate_excitation_reset_and_bad_input() -> None:
         TimeOffsetOptions(initial_sigma_s=0.0)
     with pytest.raises(InvalidInputError, match="dt_s"):
         filt.predict(-1.0)
-
-
-def test_gyro_buffer_offset_can_change_online() -> None:
-    buf = GyroBuffer(imu_time_offset_ns=5)
-    buf.set_imu_time_offset_ns(30_000_000)
-    assert buf.imu_time_offset_ns == 30_000_000
-    with pytest.raises(InvalidInputError, match="integer"):
-        buf.set_imu_time_offset_ns(0.03)  # type: ignore[arg-type]

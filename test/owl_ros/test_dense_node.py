@@ -16,26 +16,27 @@ from msg_adapters.msgtypes import message_class
 from owl_ros.dense_outputs import DensePublishers
 from owl_ros.params import build_options
 from owl_ros.pipeline import Output, Pipeline
+from owl_ros.roles import Role
 
 pytestmark = [pytest.mark.dds]
 
 
 def _outputs(bag: Path, options: Any) -> list[tuple[Output, Any, Any]]:
-    pipeline = Pipeline(options)
+    now = [0]  # the pipeline's clock: the bag's log time
+    pipeline = Pipeline(options, clock=lambda: now[0])
     outs: list[tuple[Output, Any, Any]] = []
-    roles = {"/camera/image_raw": "image", "/camera/camera_info": "info", "/imu/data": "imu"}
+    roles = {
+        "/camera/image_raw": Role.IMAGE,
+        "/camera/camera_info": Role.CAMERA_INFO,
+        "/imu/data": Role.IMU,
+    }
     with BagReader(bag) as reader:
         types = {t: i.msgtype for t, i in reader.topics.items()}
         for raw in reader.messages(list(roles)):
             msg = deserialize_message(raw.data, message_class(types[raw.topic]))
-            role = roles[raw.topic]
-            if role == "image":
-                pipeline.add_image(msg, raw.log_time_ns)
-            elif role == "info":
-                pipeline.add_camera_info(msg)
-            else:
-                pipeline.add_imu(msg, raw.log_time_ns)
-            for out in pipeline.poll(raw.log_time_ns):
+            now[0] = raw.log_time_ns
+            got = pipeline.add(roles[raw.topic], msg, raw.log_time_ns) + pipeline.poll()
+            for out in got:
                 outs.append((out, pipeline.engine, pipeline.camera))
     return outs
 

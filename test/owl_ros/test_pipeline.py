@@ -1,7 +1,8 @@
 """owl_ros.pipeline: the message -> engine -> message path, fed with rendered frames.
 
 The inputs are real rclpy messages built from an in-memory rendered scenario (bags.sim.scenarios)
-with the msg_adapters; arrival times are the stamps (a perfectly punctual sensor).
+with the msg_adapters; arrival times are the stamps (a perfectly punctual sensor), and the
+pipeline's clock is a :class:`ManualClock` the test sets to each arrival.
 """
 
 from __future__ import annotations
@@ -23,8 +24,11 @@ from msg_adapters.imu import gyro_to_imus
 from msg_adapters.pointcloud import OWL_FIELDS, cloud_speed, cloud_to_array
 from msg_adapters.stamps import header_to_ns, make_header
 from owl_core.types import PointFlag
-from owl_ros.params import build_options
-from owl_ros.pipeline import Inbox, Output, Pipeline, draw_debug
+from owl_ros.node import Control, Inbox
+from owl_ros.node import feed as feed_inbox
+from owl_ros.params import NodeOptions, build_options
+from owl_ros.pipeline import Output, Pipeline
+from owl_ros.roles import Role
 
 WIDTH, HEIGHT = 320, 240
 FRAME_NS = 33_333_333
@@ -57,6 +61,27 @@ def feed() -> Feed:
     return Feed(images, info, imus, vels, sim.camera_to_imu_xyzw, sim.camera)
 
 
+class ManualClock:
+    """The pipeline's clock in these tests: the time is what the test last set, ns."""
+
+    def __init__(self, now: int = 0) -> None:
+        self.now = now
+
+    def __call__(self) -> int:
+        return self.now
+
+
+def make(opts: NodeOptions) -> Pipeline:
+    """A pipeline on a :class:`ManualClock` (``pipe.clock``)."""
+    return Pipeline(opts, clock=ManualClock())
+
+
+def at(pipeline: Pipeline, now: int) -> Pipeline:
+    """Set the pipeline's clock to ``now``; returns the pipeline."""
+    pipeline.clock.now = now  # type: ignore[attr-defined]
+    return pipeline
+
+
 def options(feed: Feed, **values: Any) -> Any:
     return build_options({"camera_to_imu_rotation_xyzw": list(feed.rotation), **values})
 
@@ -66,35 +91,35 @@ def events(
     images: Iterable[Any] | None = None,
     imus: Iterable[Any] | None = None,
     info: Any | None = "default",
-) -> list[tuple[int, str, Any]]:
-    """(arrival ns, kind, msg) in time order; camera_info with every image."""
+) -> list[tuple[int, Role, Any]]:
+    """(arrival ns, role, msg) in time order; camera_info with every image."""
     out = []
     for img in feed.images if images is None else images:
         t = header_to_ns(img.header)
-        out.append((t, "image", img))
+        out.append((t, Role.IMAGE, img))
         if info is not None:
-            out.append((t, "camera_info", feed.info if info == "default" else info))
+            out.append((t, Role.CAMERA_INFO, feed.info if info == "default" else info))
     for imu in feed.imus if imus is None else imus:
-        out.append((header_to_ns(imu.header), "imu", imu))
-    order = {"imu": 0, "image": 1, "camera_info": 2}
+        out.append((header_to_ns(imu.header), Role.IMU, imu))
+    order = {Role.IMU: 0, Role.IMAGE: 1, Role.CAMERA_INFO: 2, Role.SPEED: 3}
     return sorted(out, key=lambda e: (e[0], order[e[1]]))
 
 
 def run(
-    pipeline: Pipeline, evs: Iterable[tuple[int, str, Any]], flush: bool = True
+    pipeline: Pipeline, evs: Iterable[tuple[int, Role, Any]], flush: bool = True
 ) -> list[Output]:
+    """Each message at its arrival time, then what is ready; at the end a flush."""
     outs: list[Output] = []
-    now = 0
-    for now, kind, msg in evs:
-        pipeline.add_events([(kind, msg, now)])
-        outs += pipeline.poll(now)
+    for now, role, msg in evs:
+        outs += at(pipeline, now).add(role, msg, now)
+        outs += pipeline.poll()
     if flush:
-        outs += pipeline.poll(now, flush=True)
+        outs += pipeline.poll(flush=True)
     return outs
 
 
-def diag(pipeline: Pipeline, name: str, now: int = 0) -> tuple[str, dict[str, str], int]:
-    recs = {r.name: r for r in pipeline.diagnostics(now, reset_window=False)}
+def diag(pipeline: Pipeline, name: str) -> tuple[str, dict[str, str], int]:
+    recs = {r.name: r for r in pipeline.diagnostics(reset_window=False)}
     rec = recs[f"owl: {name}"]
     return rec.message, rec.value_map(), int(rec.level)
 
@@ -117,7 +142,7 @@ def modified(msg: Any, **fields: Any) -> Any:
 
 
 def test_nominal_every_frame_processed_header_kept_heading_right(feed: Feed) -> None:
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     outs = run(pipe, events(feed))
     assert len(outs) == len(feed.images)
     for out, img in zip(outs, feed.images, strict=True):
@@ -157,7 +182,7 @@ def test_nominal_every_frame_processed_header_kept_heading_right(feed: Feed) -> 
 def test_bad_image_skipped_with_reason_and_processing_continues(
     feed: Feed, change: dict[str, Any], expect: str
 ) -> None:
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     images = list(feed.images)
     images[6] = modified(images[6], **change)
     outs = run(pipe, events(feed, images=images))
@@ -171,7 +196,7 @@ def test_bad_image_skipped_with_reason_and_processing_continues(
 
 
 def test_image_size_differing_from_camera_info(feed: Feed) -> None:
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     small = array_to_image(np.zeros((120, 160), np.uint8), "mono8", header=feed.images[0].header)
     run(pipe, events(feed, images=[small]))
     _, values, _ = diag(pipe, "input")
@@ -183,7 +208,7 @@ def test_image_size_differing_from_camera_info(feed: Feed) -> None:
 
 
 def test_no_camera_info_then_processing_starts(feed: Feed) -> None:
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     outs = run(pipe, events(feed, images=feed.images[:4], info=None))
     assert outs == []
     msg, _, level = diag(pipe, "input")
@@ -207,7 +232,7 @@ def test_no_camera_info_then_processing_starts(feed: Feed) -> None:
 def test_invalid_camera_info_reported_until_a_valid_one(
     feed: Feed, field: str, value: Any, expect: str
 ) -> None:
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     bad = modified(feed.info, **{field: value})
     assert run(pipe, events(feed, images=feed.images[:3], info=bad)) == []
     msg, values, level = diag(pipe, "input")
@@ -220,7 +245,7 @@ def test_invalid_camera_info_reported_until_a_valid_one(
 
 
 def test_zero_focal_length_rejected(feed: Feed) -> None:
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     k = list(feed.info.k)
     k[0] = 0.0
     run(pipe, events(feed, images=feed.images[:2], info=modified(feed.info, k=k)))
@@ -233,7 +258,7 @@ def test_zero_focal_length_rejected(feed: Feed) -> None:
 
 
 def test_no_imu_default_gives_no_points_with_reason(feed: Feed) -> None:
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     outs = run(pipe, events(feed, imus=[]))
     assert len(outs) == len(feed.images)
     assert with_points(outs) == []
@@ -242,7 +267,7 @@ def test_no_imu_default_gives_no_points_with_reason(feed: Feed) -> None:
 
 
 def test_no_imu_without_require_gyro_flags_every_point(feed: Feed) -> None:
-    pipe = Pipeline(options(feed, require_gyro=False))
+    pipe = make(options(feed, require_gyro=False))
     outs = run(pipe, events(feed, imus=[]))
     good = with_points(outs)
     assert good, [o.result.reasons for o in outs]
@@ -257,7 +282,7 @@ def test_imu_gap_frames_flagged_or_skipped(feed: Feed) -> None:
     # no IMU from 5 ms after frame 8 to 5 ms before frame 10 (a 60 ms gap)
     t0, t1 = stamps[8] + 5_000_000, stamps[10] - 5_000_000
     imus = [m for m in feed.imus if not t0 < header_to_ns(m.header) < t1]
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     outs = run(pipe, events(feed, imus=imus))
     by_stamp = {header_to_ns(o.header): o for o in outs}
     assert len(outs) == len(stamps)
@@ -272,7 +297,7 @@ def test_imu_gap_frames_flagged_or_skipped(feed: Feed) -> None:
     assert diag(pipe, "input")[1]["imu_gaps_total"] == "1"
     assert diag(pipe, "processing")[1]["dropped_queue_full_total"] == "0"
     # without require_gyro the gap frames give points flagged NO_GYRO | IMU_GAP
-    pipe = Pipeline(options(feed, require_gyro=False))
+    pipe = make(options(feed, require_gyro=False))
     outs = {header_to_ns(o.header): o for o in run(pipe, events(feed, imus=imus))}
     flags = cloud_to_array(outs[stamps[9]].cloud)["flags"]
     assert flags.size and np.all(flags & PointFlag.IMU_GAP) and np.all(flags & PointFlag.NO_GYRO)
@@ -290,9 +315,9 @@ def test_bad_imu_samples_dropped_and_counted(feed: Feed) -> None:
     extra = []
     for idx in (100, 150, 151):
         t = header_to_ns(imus[idx].header)
-        extra.append((t + 1, "imu", imus[idx] if idx == 100 else imus[idx - 10]))
+        extra.append((t + 1, Role.IMU, imus[idx] if idx == 100 else imus[idx - 10]))
     evs = sorted(evs + extra, key=lambda e: e[0])
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     outs = run(pipe, evs)
     _, values, level = diag(pipe, "input")
     assert values["imu_non_finite_total"] == "1"
@@ -306,7 +331,7 @@ def test_bad_imu_samples_dropped_and_counted(feed: Feed) -> None:
 
 
 def test_time_going_backwards_resets_engine(feed: Feed) -> None:
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     first = run(pipe, events(feed), flush=True)
     second = run(pipe, events(feed), flush=True)  # a bag loop: same stamps again
     _, values, level = diag(pipe, "processing")
@@ -319,7 +344,7 @@ def test_time_going_backwards_resets_engine(feed: Feed) -> None:
 
 
 def test_duplicate_image_stamp_skipped(feed: Feed) -> None:
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     images = [*feed.images[:6], feed.images[5], *feed.images[6:]]
     outs = run(pipe, events(feed, images=images))
     assert len(outs) == len(feed.images)
@@ -327,16 +352,16 @@ def test_duplicate_image_stamp_skipped(feed: Feed) -> None:
 
 
 def test_bounded_wait_for_imu(feed: Feed) -> None:
-    pipe = Pipeline(options(feed, imu_wait_s=0.05))
+    pipe = make(options(feed, imu_wait_s=0.05))
     stamps = [header_to_ns(i.header) for i in feed.images]
     evs = [e for e in events(feed) if e[0] <= stamps[3]]
     run(pipe, evs, flush=False)
     # frame 4 arrives, but the IMU stops 10 ms before its stamp (IMU still live)
-    pipe.add_image(feed.images[4], stamps[4])
-    assert pipe.poll(stamps[4]) == []
-    assert pipe.poll(stamps[4] + 49_000_000) == []  # still waiting
-    assert pipe.next_deadline_ns() == stamps[4] + 50_000_000
-    outs = pipe.poll(stamps[4] + 50_000_000)  # wait over: processed with what exists
+    at(pipe, stamps[4]).add_image(feed.images[4], stamps[4])
+    assert pipe.poll() == []
+    assert at(pipe, stamps[4] + 49_000_000).poll() == []  # still waiting
+    assert pipe.deadline_ns() == stamps[4] + 50_000_000
+    outs = at(pipe, stamps[4] + 50_000_000).poll()  # wait over: processed with what exists
     assert len(outs) == 1
     assert any("IMU does not cover" in r for r in outs[0].result.reasons)
 
@@ -344,20 +369,21 @@ def test_bounded_wait_for_imu(feed: Feed) -> None:
 def test_rolling_shutter_frame_waits_for_imu_up_to_its_last_row(feed: Feed) -> None:
     stamps = [header_to_ns(i.header) for i in feed.images]
     for readout, waits in ((0.0, False), (0.03, True)):
-        pipe = Pipeline(options(feed, rolling_shutter_readout_s=readout, imu_wait_s=0.1))
+        pipe = make(options(feed, rolling_shutter_readout_s=readout, imu_wait_s=0.1))
         # the IMU up to 10 ms past frame 4: its rows reach 30 ms past it
         imus = [i for i in feed.imus if header_to_ns(i.header) <= stamps[4] + 10_000_000]
         outs = run(pipe, events(feed, images=feed.images[:5], imus=imus), flush=False)
         assert len(outs) == (4 if waits else 5)
         if waits:
             rest = [i for i in feed.imus if header_to_ns(i.header) > stamps[4] + 10_000_000]
-            pipe.add_events([("imu", i, stamps[4] + 31_000_000) for i in rest[:12]])
-            outs = pipe.poll(stamps[4] + 31_000_000)
+            now = stamps[4] + 31_000_000
+            at(pipe, now).add_imus(rest[:12], now)
+            outs = pipe.poll()
             assert len(outs) == 1 and outs[0].result.num_points > 0
 
 
 def test_calibration_check_switch(feed: Feed) -> None:
-    pipe = Pipeline(options(feed, calibration_check=False))
+    pipe = make(options(feed, calibration_check=False))
     run(pipe, events(feed, images=feed.images[:3]), flush=True)
     assert pipe._calibration is None
     engine = pipe.engine
@@ -366,14 +392,14 @@ def test_calibration_check_switch(feed: Feed) -> None:
     pipe.reconfigure(replace(pipe.options, calibration_check=False))
     assert pipe._calibration is None and pipe.calibration_verdict is None
     # with a rolling shutter the check's images refer to their middle row on average
-    pipe = Pipeline(options(feed, imu_time_offset=0.01, rolling_shutter_readout_s=0.03))
+    pipe = make(options(feed, imu_time_offset=0.01, rolling_shutter_readout_s=0.03))
     run(pipe, events(feed, images=feed.images[:2]), flush=True)
     assert pipe._calibration is not None
     assert pipe._calibration._offset == pytest.approx(0.025, abs=1e-12)
 
 
 def test_newest_frame_wins_when_queue_full(feed: Feed) -> None:
-    pipe = Pipeline(options(feed, queue_size=2))
+    pipe = make(options(feed, queue_size=2))
     run(pipe, events(feed, images=feed.images[:2]), flush=True)
     imus = [m for m in feed.imus if header_to_ns(m.header) > header_to_ns(feed.images[1].header)]
     for imu in imus:
@@ -381,62 +407,61 @@ def test_newest_frame_wins_when_queue_full(feed: Feed) -> None:
     for img in feed.images[2:7]:  # five frames arrive while the worker is busy
         pipe.add_image(img, header_to_ns(img.header))
     assert pipe.pending == 2
-    outs = pipe.poll(header_to_ns(feed.images[6].header))
+    outs = at(pipe, header_to_ns(feed.images[6].header)).poll()
     assert [o.header for o in outs] == [feed.images[5].header, feed.images[6].header]
     assert diag(pipe, "processing")[1]["dropped_queue_full_total"] == "3"
+    assert pipe.totals.images == 7 and pipe.totals.dropped_queue_full == 3
 
 
-def test_inbox_bounded_newest_wins() -> None:
-    inbox = Inbox(image_capacity=2, other_capacity=3)
+def test_inbox_bounded_in_order() -> None:
+    inbox = Inbox(capacity=3)
     for k in range(5):
-        inbox.put_image(k, k)
-        inbox.put("imu", k, k)
-    got, dropped = inbox.drain()
-    assert dropped == 3 and inbox.dropped_other == 2
-    # what is kept comes out in the order it was put, across kinds
-    assert got == [("imu", 2, 2), ("image", 3, 3), ("imu", 3, 3), ("image", 4, 4), ("imu", 4, 4)]
-    assert inbox.drain() == ([], 0)
+        inbox.put(Role.IMU, k, k)
+    inbox.put(Control.QOS, "text", 9)
+    assert inbox.dropped == 3
+    # what is kept comes out in the order it was put
+    assert inbox.drain() == [(Role.IMU, 3, 3), (Role.IMU, 4, 4), (Control.QOS, "text", 9)]
+    assert inbox.drain() == []
 
 
 def test_bag_loop_seen_late_by_a_busy_worker_resets_once(feed: Feed) -> None:
-    """The worker drains the end of one loop and the start of the next at once (it was busy).
-    The old loop's frames still queued when the new loop's IMU reveals the jump are
-    processed first, with the IMU they had (all of it arrived before the jump), and the new
-    loop's IMU samples are kept: one reset, every frame covered by the gyro, and the new
-    loop warms up like the first pass. (Handing over all IMU first, then the images,
-    processed an old frame after the reset: a second reset then dropped the new loop's
-    gyro. Dropping the queued old frames at the jump lost frames that had all they need.)"""
-    pipe = Pipeline(options(feed))
-    inbox = Inbox(image_capacity=8)
+    """The node's worker drains the end of one loop and the start of the next at once (it
+    was busy): the images went straight into the frame queue (8 deep here), the IMU into
+    the inbox. The old loop's frames still queued when the new loop's IMU reveals the jump
+    are processed first, with the IMU they had (all of it arrived before the jump), and the
+    new loop's IMU samples are kept: one reset, every frame covered by the gyro, and the new
+    loop warms up like the first pass. (Dropping the queued old frames at the jump would
+    lose frames that had all they need.)"""
+    pipe = make(options(feed, queue_size=8))
+    inbox = Inbox()
     evs = events(feed)
-    cut = [i for i, e in enumerate(evs) if e[1] == "image"]
+    cut = [i for i, e in enumerate(evs) if e[1] is Role.IMAGE]
     late, resume = cut[-3], len(evs) + cut[3]  # last 3 old frames, first 3 new ones at once
     loop = evs * 2
     outs: list[Output] = []
     i = 0
     while i < len(loop):
         j = resume if i == late else i + 1
-        for t, kind, msg in loop[i:j]:
-            inbox.put_image(msg, t) if kind == "image" else inbox.put(kind, msg, t)
-        got, dropped = inbox.drain()
-        pipe.add_events(got)
-        pipe.count_dropped(dropped)
-        outs += pipe.poll(loop[j - 1][0])
+        for t, role, msg in loop[i:j]:  # what the callbacks do
+            if role is Role.IMAGE:
+                pipe.add_image(msg, t)
+            else:
+                inbox.put(role, msg, t)
+        at(pipe, loop[j - 1][0])
+        outs += feed_inbox(pipe, inbox.drain())  # what the worker does
+        outs += pipe.poll()
         i = j
-    outs += pipe.poll(loop[-1][0], flush=True)
-    assert pipe.totals["time_jumps"] == 1
-    assert pipe.totals["frames_imu_not_covered"] == 0
+    outs += pipe.poll(flush=True)
+    assert pipe.totals.time_jumps == 1
+    assert pipe.totals.frames_imu_not_covered == 0
+    assert pipe.totals.dropped_queue_full == 0
     stamps = [header_to_ns(o.header) for o in outs]
     back = next(k for k in range(1, len(outs)) if stamps[k] < stamps[k - 1])
     first, second = outs[:back], outs[back:]
-    # the batch held the last 3 old frames for a queue of 2: the oldest gave way; the other
-    # two were processed before the reset
     old = [header_to_ns(img.header) for img in feed.images]
-    assert stamps[:back] == old[:-3] + old[-2:]
-    assert pipe.totals["dropped_queue_full"] == 2  # that one, and the first new frame
+    assert stamps[:back] == old  # the last 3 old frames processed before the reset
+    assert stamps[back:] == old
     assert all(o.result.num_points > 0 for o in first[5:])
-    # the batch held 3 new frames for a queue of 2: the first new frame gave way
-    assert stamps[back:] == [header_to_ns(img.header) for img in feed.images[1:]]
     # no stale tracks: the new loop warms up like the first, then every frame has points
     warm = [o.result.num_points > 0 for o in first].index(True)
     assert [o.result.num_points > 0 for o in second] == [False] * warm + [True] * (
@@ -447,18 +472,19 @@ def test_bag_loop_seen_late_by_a_busy_worker_resets_once(feed: Feed) -> None:
 def test_poll_limit_takes_one_frame_at_a_time(feed: Feed) -> None:
     """The node's worker takes one frame per step (and publishes it before the next): with
     three covered frames queued, poll(limit=1) gives them one by one, in order."""
-    pipe = Pipeline(options(feed, queue_size=8))
+    pipe = make(options(feed, queue_size=8))
     evs = events(feed)
-    fourth = [i for i, e in enumerate(evs) if e[1] == "image"][3]
-    pipe.add_events([(kind, msg, t) for t, kind, msg in evs[:fourth]])  # 3 frames, their IMU
-    assert pipe.pending_count == 3
-    now = evs[fourth - 1][0]
+    fourth = [i for i, e in enumerate(evs) if e[1] is Role.IMAGE][3]
+    for t, role, msg in evs[:fourth]:  # 3 frames, their IMU
+        pipe.add(role, msg, t)
+    assert pipe.pending == 3
+    at(pipe, evs[fourth - 1][0])
     got = []
-    while pipe.pending_count:
-        outs = pipe.poll(now, limit=1)
+    while pipe.pending:
+        outs = pipe.poll(limit=1)
         assert len(outs) == 1
         got += outs
-    assert pipe.poll(now, limit=1) == []
+    assert pipe.poll(limit=1) == []
     assert [o.header for o in got] == [img.header for img in feed.images[:3]]
     pipe.record_cycle(0.025)
     assert diag(pipe, "processing")[1]["frame_cycle_ms_max"] == "25"
@@ -474,10 +500,12 @@ def _twist(stamp: int, v: np.ndarray) -> Any:
 
 
 def test_speed_source_makes_cloud_metric(feed: Feed) -> None:
-    pipe = Pipeline(options(feed, speed_source="twist"))
+    pipe = make(options(feed, speed_source="twist"))
     stamps = [header_to_ns(i.header) for i in feed.images]
-    speed_evs = [(t, "speed", _twist(t, v)) for t, v in zip(stamps, feed.velocities, strict=True)]
-    evs = sorted(events(feed) + speed_evs, key=lambda e: (e[0], e[1] == "image"))
+    speed_evs = [
+        (t, Role.SPEED, _twist(t, v)) for t, v in zip(stamps, feed.velocities, strict=True)
+    ]
+    evs = sorted(events(feed) + speed_evs, key=lambda e: (e[0], e[1] is Role.IMAGE))
     outs = with_points(run(pipe, evs))
     assert outs
     for out in outs:
@@ -491,7 +519,7 @@ def test_speed_source_makes_cloud_metric(feed: Feed) -> None:
 
 
 def test_stale_speed_leaves_cloud_in_seconds(feed: Feed) -> None:
-    pipe = Pipeline(options(feed, speed_source="twist", speed_max_age_s=0.01))
+    pipe = make(options(feed, speed_source="twist", speed_max_age_s=0.01))
     old = header_to_ns(feed.images[0].header) - 10**9
     pipe.add_speed(_twist(old, np.array([0.0, 0.0, 4.0])))
     outs = with_points(run(pipe, events(feed)))
@@ -499,7 +527,7 @@ def test_stale_speed_leaves_cloud_in_seconds(feed: Feed) -> None:
 
 
 def test_reconfigure_rebuilds_engine(feed: Feed) -> None:
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     run(pipe, events(feed, images=feed.images[:8]), flush=True)
     engine = pipe.engine
     pipe.reconfigure(replace(pipe.options, imu_wait_s=0.2))
@@ -507,11 +535,20 @@ def test_reconfigure_rebuilds_engine(feed: Feed) -> None:
     pipe.reconfigure(options(feed, max_features=200))
     assert pipe.engine is not engine and pipe.engine is not None
     assert pipe.engine.options.max_features == 200
-    assert len(pipe.engine.gyro) > 0  # IMU history re-fed
+    assert pipe.engine.gyro is engine.gyro is pipe.gyro  # the IMU history is kept, not copied
+    assert len(pipe.gyro) > 0
+    # a new extrinsic: the same samples, read through the new rotation
+    pipe.reconfigure(options(feed, camera_to_imu_rotation_xyzw=[0.0, 0.0, 1.0, 0.0]))
+    assert pipe.engine.gyro is pipe.gyro
+    np.testing.assert_allclose(
+        pipe.gyro.camera_to_imu_rotation, np.diag([-1.0, -1.0, 1.0]), atol=1e-12
+    )
 
 
 def test_draw_debug_marks_points_and_heading(feed: Feed) -> None:
-    pipe = Pipeline(options(feed))
+    from msg_adapters.debug_image import draw_debug
+
+    pipe = make(options(feed))
     out = with_points(run(pipe, events(feed)))[-1]
     picture = draw_debug(out.image, out.result, pipe.camera)
     assert picture.shape == (HEIGHT, WIDTH, 3) and picture.dtype == np.uint8
@@ -526,11 +563,12 @@ def test_draw_debug_marks_points_and_heading(feed: Feed) -> None:
 
 
 def test_gyro_samples_before_camera_info_are_kept(feed: Feed) -> None:
-    pipe = Pipeline(options(feed))
+    pipe = make(options(feed))
     for imu in feed.imus[:40]:
         pipe.add_imu(imu, header_to_ns(imu.header))
     pipe.add_camera_info(feed.info)
     assert pipe.engine is not None and len(pipe.engine.gyro) == 40
+    assert pipe.engine.gyro is pipe.gyro
 
 
 def test_compressed_png_gives_the_same_result_as_raw(feed: Feed) -> None:
@@ -540,10 +578,8 @@ def test_compressed_png_gives_the_same_result_as_raw(feed: Feed) -> None:
         array_to_compressed(image_to_array(m), "mono8", "png", header=m.header)
         for m in feed.images[:10]
     ]
-    raw = run(Pipeline(options(feed)), events(feed, images=feed.images[:10]))
-    comp = run(
-        Pipeline(options(feed, image_transport="compressed")), events(feed, images=compressed)
-    )
+    raw = run(make(options(feed)), events(feed, images=feed.images[:10]))
+    comp = run(make(options(feed, image_transport="compressed")), events(feed, images=compressed))
     assert len(raw) == len(comp) == 10
     for a, b in zip(raw, comp, strict=True):
         assert a.header == b.header
@@ -554,17 +590,17 @@ def test_rotation_only_no_points_reason_and_bias_keeps_updating() -> None:
     sim = scenarios.get("rotation_only").simulate(
         SimOptions(seconds=0.4, width=WIDTH, height=HEIGHT)
     )
-    pipe = Pipeline(build_options({"camera_to_imu_rotation_xyzw": list(sim.camera_to_imu_xyzw)}))
+    pipe = make(build_options({"camera_to_imu_rotation_xyzw": list(sim.camera_to_imu_xyzw)}))
     pipe.add_camera_info(camera_model_to_info(sim.camera, make_header(0, CAMERA_FRAME)))
     for imu in gyro_to_imus(sim.gyro_samples(), IMU_FRAME):
         pipe.add_imu(imu, 0)
     biases = []
     for frame in sim.frames():
-        pipe.add_image(
+        at(pipe, frame.stamp_ns).add_image(
             array_to_image(frame.image, "mono8", header=make_header(frame.stamp_ns, CAMERA_FRAME)),
             frame.stamp_ns,
         )
-        (out,) = pipe.poll(frame.stamp_ns)
+        (out,) = pipe.poll()
         assert out.result.num_points == 0 and out.heading is None
         _, values, _ = diag(pipe, "gyro")
         biases.append([float(values[f"bias_{a}_rad_s"]) for a in "xyz"])
@@ -581,20 +617,20 @@ def test_imu_publisher_disappears_and_comes_back(feed: Feed) -> None:
     lost_from, back_at = stamps[7] + 1_000_000, stamps[10] + 1_000_000
     imus = [m for m in feed.imus if not lost_from < header_to_ns(m.header) < back_at]
     evs = []
-    for t, kind, msg in events(feed, imus=imus):
+    for t, role, msg in events(feed, imus=imus):
         silent_gap = 2_000_000_000 if t > lost_from else 0  # arrivals 2 s later
-        evs.append((t + silent_gap, kind, msg))
-    pipe = Pipeline(options(feed))
+        evs.append((t + silent_gap, role, msg))
+    pipe = make(options(feed))
     outs = []
-    for now, kind, msg in evs:
-        pipe.add_events([(kind, msg, now)])
-        got = pipe.poll(now)
-        if kind == "image" and header_to_ns(msg.header) in stamps[8:11]:
+    for now, role, msg in evs:
+        got = at(pipe, now).add(role, msg, now)
+        got += pipe.poll()
+        if role is Role.IMAGE and header_to_ns(msg.header) in stamps[8:11]:
             # IMU silent for > 1 s: processed at once, not after imu_wait_s
             assert [o.header for o in got][-1:] == [msg.header]
             assert any("IMU does not cover" in r for r in got[-1].result.reasons)
         outs += got
-    outs += pipe.poll(evs[-1][0], flush=True)
+    outs += pipe.poll(flush=True)
     assert len(outs) == len(stamps)
     assert outs[-1].result.num_points > 0  # recovered
     assert diag(pipe, "input")[1]["imu_gaps_total"] == "1"
@@ -608,21 +644,21 @@ def test_imu_batches_equal_single_messages(feed: Feed) -> None:
     nan.angular_velocity.y = math.inf
     imus[60] = nan
     imus.insert(90, imus[89])  # duplicate
-    single = Pipeline(options(feed))
+    single = make(options(feed))
     outs_single = run(single, events(feed, imus=imus))
-    batched = Pipeline(options(feed))
+    batched = make(options(feed))
     outs_batched: list[Output] = []
-    batch: list[tuple[str, Any, int]] = []
-    for now, kind, msg in events(feed, imus=imus):
-        batch.append((kind, msg, now))
-        if kind != "imu":  # the worker wakes for each image: what came before, in one go
-            batched.add_events(batch)
+    batch: list[tuple[Any, Any, int]] = []
+    for now, role, msg in events(feed, imus=imus):
+        batch.append((role, msg, now))
+        if role is not Role.IMU:  # the worker wakes for each image: what came before
+            outs_batched += feed_inbox(at(batched, now), batch)
             batch = []
-            outs_batched += batched.poll(now)
-    batched.add_events(batch)
-    outs_batched += batched.poll(now, flush=True)
+            outs_batched += batched.poll()
+    outs_batched += feed_inbox(batched, batch)
+    outs_batched += batched.poll(flush=True)
     assert [bytes(o.cloud.data) for o in outs_batched] == [
         bytes(o.cloud.data) for o in outs_single
     ]
     for key in ("imu", "imu_non_finite", "imu_duplicate"):
-        assert batched.totals[key] == single.totals[key] > 0
+        assert getattr(batched.totals, key) == getattr(single.totals, key) > 0

@@ -14,7 +14,6 @@ import pytest
 
 from msg_adapters.image import array_to_image
 from msg_adapters.stamps import header_to_ns
-from owl_ros.pipeline import Pipeline
 
 _spec = importlib.util.spec_from_file_location(
     "owl_test_pipeline_helpers", Path(__file__).with_name("test_pipeline.py")
@@ -34,14 +33,14 @@ def test_infinite_gyro_rates_dropped_and_counted(feed: Any, value: float) -> Non
         bad = tp.modified(imus[idx])
         setattr(bad.angular_velocity, axis, value)
         imus[idx] = bad
-    pipe = Pipeline(tp.options(feed))
+    pipe = tp.make(tp.options(feed))
     outs = tp.run(pipe, tp.events(feed, imus=imus))
     msg, values, level = tp.diag(pipe, "input")
     assert values["imu_non_finite_total"] == "3"
     assert "not finite" in values["last_imu_problem"] and "inf" in values["last_imu_problem"]
     assert level == 1 and "bad IMU samples dropped" in msg
     # one missing sample in 400 Hz is no gap: every frame as without the bad samples
-    reference = tp.run(Pipeline(tp.options(feed)), tp.events(feed))
+    reference = tp.run(tp.make(tp.options(feed)), tp.events(feed))
     assert [o.result.num_points > 0 for o in outs] == [o.result.num_points > 0 for o in reference]
     for got, ref in zip(outs, reference, strict=True):
         if ref.result.heading is not None:
@@ -65,7 +64,7 @@ def test_every_kind_of_bad_image_in_one_stream(feed: Any) -> None:
     }
     for k, msg in bad.items():
         images[k] = msg
-    pipe = Pipeline(tp.options(feed))
+    pipe = tp.make(tp.options(feed))
     outs = tp.run(pipe, tp.events(feed, images=images))
     done = {header_to_ns(o.header) for o in outs}
     assert len(outs) == len(images) - len(bad)

@@ -2,22 +2,22 @@
 
 from __future__ import annotations
 
-import collections
 import math
 
 import numpy as np
 
 from msg_adapters.diagnostics import Level
+from owl_ros.counters import Counters
 from owl_ros.status import StatusInputs, build_status
 
 
 def _inputs(**kw: object) -> StatusInputs:
     base: dict[str, object] = {
         "span_s": 2.0,
-        "counts": collections.Counter(
+        "counts": Counters(
             images=60, imu=800, camera_info=60, processed=58, frames_with_points=50
         ),
-        "totals": collections.Counter(images=600, processed=580, frames_with_points=500),
+        "totals": Counters(images=600, processed=580, frames_with_points=500),
         "points": [100, 300],
         "process_s": [0.01, 0.03],
         "camera_known": True,
@@ -42,7 +42,7 @@ def test_healthy_window() -> None:
 
 
 def test_problems_raise_the_level_and_are_named() -> None:
-    counts = collections.Counter(images=10, imu=0, processed=0, dropped_queue_full=3)
+    counts = Counters(images=10, imu=0, processed=0, dropped_queue_full=3)
     inp, proc, gyro = build_status(
         _inputs(
             counts=counts,

@@ -506,6 +506,90 @@ class _Progress:
         self.stream.flush()
 
 
+def _imu_message(ds: Dataset, j: int, acc_present: bool) -> Any:
+    """sensor_msgs/Imu of IMU sample ``j`` (covariance -1 marks what is absent, REP 145)."""
+    from sensor_msgs.msg import Imu
+
+    from msg_adapters.stamps import make_header
+
+    absent = [-1.0] + [0.0] * 8
+    m = Imu(header=make_header(int(ds.imu_stamps_ns[j]), IMU_FRAME))
+    m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z = map(float, ds.gyro[j])
+    m.orientation_covariance = list(absent)
+    if acc_present:
+        a_xyz = map(float, ds.accel[j])
+        m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z = a_xyz
+    else:
+        m.linear_acceleration_covariance = list(absent)
+    return m
+
+
+@dataclass(frozen=True)
+class _Truth:
+    """Ground truth at the image stamps: (K,) masks of where it exists and (K, 3) values."""
+
+    twist_ok: npt.NDArray[np.bool_]
+    lin: F64
+    ang: F64
+    bias_ok: npt.NDArray[np.bool_]
+    bias: F64
+
+
+def _truth(ds: Dataset, stamps: npt.NDArray[np.int64]) -> _Truth:
+    twist_ok = np.zeros(stamps.size, dtype=bool)
+    bias_ok = np.zeros(stamps.size, dtype=bool)
+    lin = ang = bias = np.zeros((stamps.size, 3))
+    if ds.track is not None:
+        twist_ok, lin, ang = camera_twist(ds.track, ds.R_xc, ds.t_xc, stamps)
+        if ds.track.gyro_bias is not None:
+            bias_ok, bias = interpolate(ds.track.stamps_ns, ds.track.gyro_bias, stamps)
+    return _Truth(twist_ok, lin, ang, bias_ok, bias)
+
+
+def _start_bag(
+    bag: BagWriter, ds: Dataset, opts: ImportOptions, truth: _Truth, has_imu: bool
+) -> None:
+    """The bag's topics (those with data) and the import settings as custom data."""
+    for key, (topic, msgtype, qos) in TOPICS.items():
+        if (
+            (key == "imu" and not has_imu)
+            or (key == "twist" and not truth.twist_ok.any())
+            or (key == "bias" and not truth.bias_ok.any())
+        ):
+            continue
+        bag.add_topic(topic, msgtype, qos)
+    bag.set_custom_data(
+        "owl_import",
+        repr(
+            {
+                "layout": ds.layout,
+                "source": ds.root.name,
+                "start_s": opts.start_s,
+                "seconds": opts.seconds,
+                "every": opts.every,
+                "scale": opts.scale,
+            }
+        ),
+    )
+
+
+def _write_truth(bag: BagWriter, truth: _Truth, n: int, header: Any, ns: int) -> None:
+    """Frame ``n``'s ground-truth twist and gyro bias, where they exist."""
+    from geometry_msgs.msg import TwistStamped, Vector3Stamped
+
+    from msg_adapters.stamps import make_header
+
+    if truth.twist_ok[n]:
+        tw = TwistStamped(header=header)
+        tw.twist.linear.x, tw.twist.linear.y, tw.twist.linear.z = map(float, truth.lin[n])
+        tw.twist.angular.x, tw.twist.angular.y, tw.twist.angular.z = map(float, truth.ang[n])
+        bag.write(TOPICS["twist"][0], ns, tw)
+    if truth.bias_ok[n]:
+        b = Vector3Stamped(header=make_header(ns, IMU_FRAME))
+        b.vector.x, b.vector.y, b.vector.z = map(float, truth.bias[n])
+        bag.write(TOPICS["bias"][0], ns, b)
+
+
 def write_dataset(
     ds: Dataset,
     out: str | Path,
@@ -517,17 +601,14 @@ def write_dataset(
     Topics: ``/camera/image_raw`` (mono8/mono16), ``/camera/camera_info``, ``/imu/data``
     (when the dataset has an IMU), ``/tf_static`` (imu_link -> camera_optical_frame),
     ``/ground_truth/twist`` and ``/ground_truth/gyro_bias`` at image stamps where the
-    poses / bias cover them. Messages are written in stamp order. On any error nothing is
-    left at ``out`` (BagWriter builds the bag in a hidden sibling directory).
+    poses / bias cover them. Messages are written in stamp order, serialised by
+    ``BagWriter.write`` (``bags.io.serialize``). On any error nothing is left at ``out``
+    (BagWriter builds the bag in a hidden sibling directory).
 
     Raises:
         DatasetError: an image missing, unreadable or of the wrong size.
         BagError: the output exists (no overwrite) or cannot be written.
     """
-    from geometry_msgs.msg import TwistStamped, Vector3Stamped
-    from rclpy.serialization import serialize_message
-    from sensor_msgs.msg import Imu
-
     from msg_adapters.camera_info import camera_model_to_info
     from msg_adapters.image import array_to_image
     from msg_adapters.stamps import make_header
@@ -545,55 +626,13 @@ def write_dataset(
     imu_keep = (ds.imu_stamps_ns >= stamps[0] - margin) & (ds.imu_stamps_ns <= stamps[-1] + margin)
     imu_keep &= ds.imu_stamps_ns >= 0
     imu_idx = np.flatnonzero(imu_keep)
-    twist_ok = np.zeros(stamps.size, dtype=bool)
-    bias_ok = np.zeros(stamps.size, dtype=bool)
-    lin = ang = bias = np.zeros((stamps.size, 3))
-    if ds.track is not None:
-        twist_ok, lin, ang = camera_twist(ds.track, ds.R_xc, ds.t_xc, stamps)
-        if ds.track.gyro_bias is not None:
-            bias_ok, bias = interpolate(ds.track.stamps_ns, ds.track.gyro_bias, stamps)
+    truth = _truth(ds, stamps)
     info = camera_model_to_info(out_camera)
     report = _Progress(progress, stamps.size)
     acc_present = bool(np.all(np.isfinite(ds.accel[imu_idx]))) if imu_idx.size else False
-    absent = [-1.0] + [0.0] * 8
-
-    def imu_msg(j: int) -> bytes:
-        ns = int(ds.imu_stamps_ns[j])
-        m = Imu(header=make_header(ns, IMU_FRAME))
-        g, a = ds.gyro[j], ds.accel[j]
-        m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z = map(float, g)
-        m.orientation_covariance = list(absent)
-        if acc_present:
-            a_xyz = map(float, a)
-            m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z = a_xyz
-        else:
-            m.linear_acceleration_covariance = list(absent)
-        return serialize_message(m)
-
-    has_twist = bool(twist_ok.any())
-    has_bias = bool(bias_ok.any())
+    imu_topic = TOPICS["imu"][0]
     with BagWriter(out, overwrite=opts.overwrite) as bag:
-        for key, (topic, msgtype, qos) in TOPICS.items():
-            if (
-                (key == "imu" and not imu_idx.size)
-                or (key == "twist" and not has_twist)
-                or (key == "bias" and not has_bias)
-            ):
-                continue
-            bag.add_topic(topic, msgtype, qos)
-        bag.set_custom_data(
-            "owl_import",
-            repr(
-                {
-                    "layout": ds.layout,
-                    "source": ds.root.name,
-                    "start_s": opts.start_s,
-                    "seconds": opts.seconds,
-                    "every": opts.every,
-                    "scale": opts.scale,
-                }
-            ),
-        )
+        _start_bag(bag, ds, opts, truth, bool(imu_idx.size))
         first = int(min(stamps[0], ds.imu_stamps_ns[imu_idx[0]] if imu_idx.size else stamps[0]))
         bag.write(TOPICS["tf"][0], first, _tf_static(first, ds.R_ic, ds.t_ic))
         j = 0
@@ -601,36 +640,24 @@ def write_dataset(
             ns = int(ns_)
             while j < imu_idx.size and ds.imu_stamps_ns[imu_idx[j]] <= ns:
                 jj = int(imu_idx[j])
-                bag.write_raw(TOPICS["imu"][0], int(ds.imu_stamps_ns[jj]), imu_msg(jj))
+                bag.write(imu_topic, int(ds.imu_stamps_ns[jj]), _imu_message(ds, jj, acc_present))
                 j += 1
             img, encoding = load_image(path, ds.camera, out_camera)
             header = make_header(ns, CAMERA_FRAME)
-            bag.write_raw(
-                TOPICS["image"][0], ns, serialize_message(array_to_image(img, encoding, header))
-            )
+            bag.write(TOPICS["image"][0], ns, array_to_image(img, encoding, header))
             info.header = header
-            bag.write_raw(TOPICS["info"][0], ns, serialize_message(info))
-            if twist_ok[n]:
-                tw = TwistStamped(header=header)
-                tw.twist.linear.x, tw.twist.linear.y, tw.twist.linear.z = map(float, lin[n])
-                tw.twist.angular.x, tw.twist.angular.y, tw.twist.angular.z = map(float, ang[n])
-                bag.write_raw(TOPICS["twist"][0], ns, serialize_message(tw))
-            if bias_ok[n]:
-                b = Vector3Stamped(header=make_header(ns, IMU_FRAME))
-                b.vector.x, b.vector.y, b.vector.z = map(float, bias[n])
-                bag.write_raw(TOPICS["bias"][0], ns, serialize_message(b))
+            bag.write(TOPICS["info"][0], ns, info)
+            _write_truth(bag, truth, n, header, ns)
             report(n + 1)
-        while j < imu_idx.size:
-            jj = int(imu_idx[j])
-            bag.write_raw(TOPICS["imu"][0], int(ds.imu_stamps_ns[jj]), imu_msg(jj))
-            j += 1
+        for jj in imu_idx[j:].tolist():
+            bag.write(imu_topic, int(ds.imu_stamps_ns[jj]), _imu_message(ds, jj, acc_present))
     report(stamps.size, True)
     return ImportSummary(
         out_path=Path(out),
         frames=int(stamps.size),
         imu_samples=int(imu_idx.size),
-        twist_frames=int(twist_ok.sum()),
-        bias_frames=int(bias_ok.sum()),
+        twist_frames=int(truth.twist_ok.sum()),
+        bias_frames=int(truth.bias_ok.sum()),
         camera=out_camera,
         camera_to_imu_rotation_xyzw=rotation_xyzw(ds.R_ic),
         elapsed_s=time.monotonic() - t_start,
