@@ -219,6 +219,36 @@ PARAMS: tuple[Param, ...] = (
         engine="imu_time_offset_s",
     ),
     Param(
+        "rolling_shutter_readout_s",
+        "double",
+        _E.rolling_shutter_readout_s,
+        "rolling-shutter readout time, s: row 0 to the row after the last (image height x "
+        "line time); the row at pixel v is seen at stamp + (v / height) x this, and the "
+        "engine gives each feature its row's time (gyro rotation, track fit; outputs refer "
+        "to the stamp); a frame waits for IMU up to stamp + this; 0 = global shutter",
+        low=0.0,
+        high=0.5,
+        engine="rolling_shutter_readout_s",
+    ),
+    Param(
+        "estimate_imu_time_offset",
+        "bool",
+        _E.estimate_time_offset,
+        "estimate a residual camera-IMU time offset online from the leftover rotation of "
+        "each frame (a time offset looks like a gyro bias proportional to the angular "
+        "acceleration) and use it, with the bias estimated jointly, once its 1-sigma is "
+        "below 5 ms; starts from imu_time_offset; 'owl: gyro' shows it",
+        engine="estimate_time_offset",
+    ),
+    Param(
+        "calibration_check",
+        "bool",
+        True,
+        "compare the rotation seen in the images with the gyro over the last 2 s every 30 "
+        "frames and WARN in 'owl: gyro' when the camera-IMU rotation or time offset "
+        "disagree (owl_core.calib_check); false: off (saves about 5 ms per frame)",
+    ),
+    Param(
         "require_gyro",
         "bool",
         _E.require_gyro,
@@ -514,6 +544,7 @@ class NodeOptions:
         publish_debug_image: offer owl/debug_image.
         rectified: the image is rectified: camera_info's P is used, D ignored.
         diagnostics_period_s: period of /diagnostics, s.
+        calibration_check: run the live camera-IMU calibration check.
         dense: run the dense stage (owl_ros.dense_outputs) and offer its topics.
         dense_width, dense_height: its working size, px.
         dense_preset: DIS preset name.
@@ -536,6 +567,7 @@ class NodeOptions:
     min_speed: float = 0.05
     publish_debug_image: bool = True
     diagnostics_period_s: float = 1.0
+    calibration_check: bool = True
     dense: bool = False
     dense_width: int = 320
     dense_height: int = 240

@@ -248,10 +248,19 @@ class Pipeline:
             return
         eng = self.options.engine
         self._engine = OwlEngine(self._camera, eng, gyro=self._gyro)
+        self._calibration = self._calibration_monitor()
+
+    def _calibration_monitor(self) -> CalibrationMonitor | None:
+        """The live calibration check for the configured extrinsic (None when switched off
+        by ``calibration_check`` or before a camera is known)."""
+        if not self.options.calibration_check or self._camera is None:
+            return None
+        eng = self.options.engine
         q = np.asarray(eng.camera_to_imu_rotation_xyzw, dtype=np.float64)
-        self._calibration = CalibrationMonitor(
-            self._camera, quat_xyzw_to_matrix(q / np.linalg.norm(q)), eng.imu_time_offset_s
-        )
+        # its frame-to-frame rotations refer each image to its stamp, which with a rolling
+        # shutter sees the middle row's time on average: half a readout after row 0
+        offset = eng.imu_time_offset_s + 0.5 * eng.rolling_shutter_readout_s
+        return CalibrationMonitor(self._camera, quat_xyzw_to_matrix(q / np.linalg.norm(q)), offset)
 
     def reconfigure(self, options: NodeOptions) -> None:
         """New options (already validated); a change of engine options rebuilds the engine
@@ -262,6 +271,8 @@ class Pipeline:
         if options.engine != old.engine:
             self._rebuild_engine()
             self.totals.reconfigured += 1
+        elif options.calibration_check != old.calibration_check:
+            self._calibration = self._calibration_monitor()
         self._scheduler.configure(options.queue_size, options.imu_wait_s)
 
     def _time_jump(self, jump: Jump) -> None:
@@ -418,7 +429,9 @@ class Pipeline:
         return Probe(
             engine=True,
             covered=engine.covers(frame.stamp_ns),
-            passed=newest is not None and newest - self._gyro.imu_time_offset_ns > frame.stamp_ns,
+            # a rolling shutter's last row is seen a readout after the stamp
+            passed=newest is not None
+            and newest - self._gyro.imu_time_offset_ns > frame.stamp_ns + engine.readout_ns,
             imu_live=arrived is not None and self.clock() - arrived < IMU_SILENT_NS,
         )
 
@@ -625,6 +638,10 @@ class Pipeline:
             queue_size=self.options.queue_size,
             require_gyro=self.options.engine.require_gyro,
             calibration=self.calibration_verdict,
+            imu_time_offset_s=engine.imu_time_offset_s if engine is not None else math.nan,
+            imu_time_offset_sigma_s=(
+                engine.imu_time_offset_sigma_s if engine is not None else math.nan
+            ),
         )
         records = build_status(snapshot)
         if reset_window:

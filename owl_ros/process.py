@@ -503,6 +503,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="IMU stamp - camera stamp, seconds (default 0)",
     )
     p.add_argument(
+        "--rolling-shutter-readout-s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="rolling-shutter readout time (row 0 to the row after the last), seconds "
+        "(default 0: global shutter); the same as -p rolling_shutter_readout_s:=S",
+    )
+    p.add_argument(
         "-p",
         "--param",
         action="append",
@@ -572,6 +580,8 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
         rotation_given = True
     if args.imu_time_offset is not None:
         values["imu_time_offset"] = args.imu_time_offset
+    if args.rolling_shutter_readout_s is not None:
+        values["rolling_shutter_readout_s"] = args.rolling_shutter_readout_s
     typos, _ = unknown_parameters(values)  # a typo in a parameter file: refused
     if typos:
         raise ParameterError(typos)

@@ -55,6 +55,9 @@ class StatusInputs:
         queue_size: the frame queue's capacity.
         require_gyro: the engine option of that name.
         calibration: the live calibration check's latest verdict (None before one).
+        imu_time_offset_s: the IMU time offset the engine uses, s (NaN without an engine).
+        imu_time_offset_sigma_s: 1-sigma of its online estimate, s (NaN when not
+            estimated: ``estimate_imu_time_offset`` off).
     """
 
     span_s: float
@@ -79,6 +82,8 @@ class StatusInputs:
     queue_size: int = 0
     require_gyro: bool = True
     calibration: MonitorVerdict | None = None
+    imu_time_offset_s: float = math.nan
+    imu_time_offset_sigma_s: float = math.nan
 
     def rate(self, count: int) -> float:
         """A window count per second (NaN for an empty window)."""
@@ -221,6 +226,11 @@ def gyro_status(s: StatusInputs) -> StatusRecord:
     message = f"bias [{bias[0]:.4g}, {bias[1]:.4g}, {bias[2]:.4g}] rad/s"
     if gaps:
         message += f"; {gaps} frames without full IMU coverage"
+    if math.isfinite(s.imu_time_offset_sigma_s):
+        message += (
+            f"; imu_time_offset estimate {1e3 * s.imu_time_offset_s:.2f} ms "
+            f"(1-sigma {1e3 * s.imu_time_offset_sigma_s:.2f} ms)"
+        )
     verdict = s.calibration
     if verdict is not None and verdict.disagrees:
         level = Level.WARN
@@ -236,6 +246,8 @@ def gyro_status(s: StatusInputs) -> StatusRecord:
             "bias_sigma_rad_s": float(np.max(s.gyro_bias_sigma)),
             "frames_imu_not_covered_total": s.totals.frames_imu_not_covered,
             "require_gyro": s.require_gyro,
+            "imu_time_offset_s": s.imu_time_offset_s,
+            "imu_time_offset_sigma_s": s.imu_time_offset_sigma_s,
             **_calibration_values(verdict),
         },
     )

@@ -19,6 +19,13 @@ Camera messages are logged at their image stamps, IMU messages at their IMU stam
 ``metadata.yaml`` ``custom_data`` holds the scenario name and every option as JSON
 (key ``owl_make_bag``).
 
+Rolling shutter (``--rolling-shutter-readout T``, seconds): row v of each image is rendered
+at its own time, image stamp + (v / height) x T (the stamp is the time of row 0, as
+``rolling_shutter_readout_s`` of node ``owl`` assumes). ``/ground_truth/twist`` is the
+camera's at the stamp; ``/ground_truth/range`` holds, per pixel, the distance from the
+camera centre at the stamp to the scene point the pixel sees (at its row's time): the
+snapshot at the stamp the engine's outputs refer to. The IMU runs T past the last frame.
+
 Gyro bias (``--gyro-bias``, IMU frame, rad/s): one number B is a bias of magnitude B along
 ``(1, 1, 1)/sqrt(3)`` (each axis B/sqrt(3)); three comma-separated numbers are the vector.
 
@@ -139,6 +146,14 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=0.0,
         help="IMU stamp - camera stamp for simultaneous events, s (default 0)",
+    )
+    p.add_argument(
+        "--rolling-shutter-readout",
+        type=float,
+        default=0.0,
+        metavar="T",
+        help="rolling-shutter readout time, s: row v seen at stamp + (v / height) T "
+        "(default 0: global shutter)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -279,6 +294,7 @@ def options_from_args(args: argparse.Namespace) -> SimOptions:
         supersample=args.supersample,
         scale=args.scale,
         imu=imu,
+        rolling_shutter_readout_s=args.rolling_shutter_readout,
     )
 
 

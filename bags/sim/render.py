@@ -26,6 +26,11 @@ far or grazing surfaces are low-pass filtered instead of shimmering.
 Textures (:func:`texture`) are periodic 1024 x 1024 tiles of thresholded pink noise: edges
 and blobs at every scale from the texel to the tile, so features exist at every range.
 
+Rolling shutter (:meth:`Renderer.render_rows`): each image row seen from its own pose, with
+the scene at its own time (the caller gives one pose and one scene per row): rectangles are
+intersected with every row's rays in that row's camera frame, so the image is exact for any
+motion during the readout (no bands, no warping).
+
 Outputs (:class:`RenderedFrame`) per pixel centre: the 8-bit image (mono8 or rgb8) with
 seeded Gaussian noise, the range (metres along the unit ray from the camera centre, float32,
 +inf for the sky, NaN outside the camera's valid region) and the object id (uint16).
@@ -441,6 +446,51 @@ class Renderer:
             msg = f"pose needs R_wc (3, 3) and c_w (3,), got {rot.shape} and {centre.shape}"
             raise ScenarioError(msg)
         local = [self._to_camera(r, rot, centre) for r in scene]
+        return self._render_local(scene, local, frame_index)
+
+    def render_rows(
+        self,
+        scenes: Sequence[Sequence[Rect]],
+        R_wc: npt.ArrayLike,
+        c_w: npt.ArrayLike,
+        frame_index: int = 0,
+    ) -> RenderedFrame:
+        """Render with a rolling shutter: image row r from pose (R_wc[r], c_w[r]) with the
+        scene ``scenes[r]``.
+
+        Args:
+            scenes: H rectangle lists, one per image row, all with the same rectangles in
+                the same order (only their origin and axes may differ from row to row:
+                objects moving during the readout); ids, textures and brightness are
+                taken from the first.
+            R_wc: (H, 3, 3) camera-to-world rotation of each row's time.
+            c_w: (H, 3) camera centre of each row's time, world, metres.
+            frame_index: selects the noise stream (seed, frame_index).
+
+        Returns:
+            RenderedFrame; ``range_m`` is each pixel's distance along its ray from the
+            camera centre of its row's time.
+        """
+        h = self.camera.height
+        rot = np.asarray(R_wc, dtype=np.float64)
+        centre = np.asarray(c_w, dtype=np.float64)
+        if rot.shape != (h, 3, 3) or centre.shape != (h, 3) or len(scenes) != h:
+            msg = (
+                f"a rolling-shutter pose needs {h} rows: R_wc ({h}, 3, 3), c_w ({h}, 3) and "
+                f"{h} scenes, got {rot.shape}, {centre.shape} and {len(scenes)}"
+            )
+            raise ScenarioError(msg)
+        count = len(scenes[0])
+        if any(len(s) != count for s in scenes):
+            msg = "every row's scene must hold the same rectangles (same count and order)"
+            raise ScenarioError(msg)
+        local = [self._to_camera_rows([s[k] for s in scenes], rot, centre) for k in range(count)]
+        return self._render_local(scenes[0], local, frame_index)
+
+    def _render_local(
+        self, scene: Sequence[Rect], local: list[dict[str, object]], frame_index: int
+    ) -> RenderedFrame:
+        """Ray cast, shade and add noise, given each rectangle in camera coordinates."""
         h, w = self.camera.height, self.camera.width
         ss = self.supersample
         rgb = self.encoding == "rgb8"
@@ -500,8 +550,17 @@ class Renderer:
                 continue
             d = grid.rays[win][sel]
             t = best_t[win][sel]
-            shade[win][sel] = self._texture(rect, loc, d, t, grid.spacing[win][sel])
+            if "rows" in loc:  # rolling shutter: each selected ray's row pose
+                rows = (np.nonzero(sel)[0] + win[0].start) // self._subrows(grid)
+                su, sv, cos = _surface_rows(loc, rows, d, t)
+            else:
+                su, sv, cos = _surface(loc, d, t)
+            shade[win][sel] = self._texture(rect, su, sv, cos, t, grid.spacing[win][sel])
         return shade
+
+    def _subrows(self, grid: _RayGrid) -> int:
+        """Ray rows per image row of ``grid`` (the supersampling factor)."""
+        return int(grid.rays.shape[0] // self.camera.height)
 
     # ----------------------------------------------------------------------------------
 
@@ -537,6 +596,9 @@ class Renderer:
             win = loc[key]
             if win is None:
                 continue
+            if "rows" in loc:
+                self._intersect_rows(grid, loc, win, k, best_t, best_k)  # type: ignore[arg-type]
+                continue
             o, u, v, n = (loc[name] for name in ("o", "u", "v", "n"))
             axes = np.stack([n, u, v], axis=1).astype(np.float32)  # (3, 3) columns
             d = grid.rays[win]
@@ -554,11 +616,102 @@ class Renderer:
             best_k[win] = np.where(hit, k, best_k[win])
         return best_t, best_k
 
-    def _texture(self, rect: Rect, loc: dict[str, object], d: F32, t: F32, spacing: F32) -> F32:
-        o, u, v, n = (np.asarray(loc[name], np.float32) for name in ("o", "u", "v", "n"))
-        su = t * (d @ u) - np.float32(o @ u)
-        sv = t * (d @ v) - np.float32(o @ v)
-        cos = np.maximum(np.abs(d @ n), np.float32(1e-3))
+    def _intersect_rows(
+        self,
+        grid: _RayGrid,
+        loc: dict[str, object],
+        win: tuple[slice, slice],
+        k: int,
+        best_t: F32,
+        best_k: npt.NDArray[np.int32],
+    ) -> None:
+        """:meth:`_intersect` for one rectangle given per image row (rolling shutter):
+        each ray row is tested against the rectangle in its own row's camera frame."""
+        rows = np.arange(win[0].start, win[0].stop) // self._subrows(grid)
+        o, u, v, n = (np.asarray(loc[name], np.float32)[rows] for name in ("o", "u", "v", "n"))
+        axes = np.stack([n, u, v], axis=2)  # (r, 3, 3) columns n, u, v per row
+        d = grid.rays[win]
+        proj = np.einsum("rci,rij->rcj", d, axes)
+        dn = proj[..., 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.einsum("ri,ri->r", o, n)[:, None] / dn
+            hit = (t > NEAR) & (t < best_t[win]) & np.asarray(loc["facing"])[rows][:, None]
+            half_u, half_v = loc["half"]  # type: ignore[misc]
+            if math.isfinite(half_u):
+                ou = np.einsum("ri,ri->r", o, u)[:, None]
+                hit &= np.abs(t * proj[..., 1] - ou) <= np.float32(half_u)
+            if math.isfinite(half_v):
+                ov = np.einsum("ri,ri->r", o, v)[:, None]
+                hit &= np.abs(t * proj[..., 2] - ov) <= np.float32(half_v)
+        best_t[win] = np.where(hit, t, best_t[win])
+        best_k[win] = np.where(hit, k, best_k[win])
+
+    def _to_camera_rows(self, rects: Sequence[Rect], rot: F64, centre: F64) -> dict[str, object]:
+        """One rectangle at each image row's time (H versions) in each row's camera frame:
+        (H, 3) origin and axes, which rows see its front, and conservative windows."""
+        origin = np.array([r.origin for r in rects], dtype=np.float64)
+        u_w = np.array([r.u for r in rects], dtype=np.float64)
+        v_w = np.array([r.v for r in rects], dtype=np.float64)
+        first = rects[0]
+        o = np.einsum("rji,rj->ri", rot, origin - centre)
+        u = np.einsum("rji,rj->ri", rot, u_w)
+        v = np.einsum("rji,rj->ri", rot, v_w)
+        n = np.cross(u, v)
+        facing = np.full(len(rects), True) if first.two_sided else np.einsum("ri,ri->r", o, n) < 0
+        hu, hv = min(first.half_u, 1e4), min(first.half_v, 1e4)
+        corners = np.stack(
+            [o + su * hu * u + sv * hv * v for su, sv in _SIGNS], axis=1
+        )  # (H, 4, 3), camera frame of each row
+        loc: dict[str, object] = {
+            "o": o,
+            "u": u,
+            "v": v,
+            "n": n,
+            "half": (first.half_u, first.half_v),
+            "rows": True,
+            "facing": facing,
+        }
+        visible = bool(facing.any())
+        loc["window_fine"] = self._rows_window(self._fine, corners, facing) if visible else None
+        loc["window_centre"] = (
+            self._rows_window(self._centre, corners, facing) if visible else None
+        )
+        return loc
+
+    def _rows_window(
+        self, grid: _RayGrid, corners: F64, facing: npt.NDArray[np.bool_]
+    ) -> tuple[slice, slice] | None:
+        """Conservative (rows, cols) slice of ``grid`` rays that can hit a rectangle whose
+        corners (H, 4, 3) are given in each image row's camera frame: a ray row is kept
+        when its row's projected rectangle spans it, the columns span every kept row's
+        projection. A rectangle partly behind some row's camera gets the whole image."""
+        h, w = grid.rays.shape[:2]
+        z = corners[..., 2]
+        if not (z >= 1e-4)[facing].any():
+            return None
+        if grid.wide or (z < 1e-4)[facing].any():
+            return slice(0, h), slice(0, w)
+        nx = corners[..., 0] / z
+        ny = corners[..., 1] / z
+        pix_rows = np.arange(h) // self._subrows(grid)
+        keep = (
+            facing[pix_rows]
+            & (grid.row_hi >= ny.min(axis=1)[pix_rows])
+            & (grid.row_lo <= ny.max(axis=1)[pix_rows])
+        )
+        if not keep.any():
+            return None
+        kept = np.unique(pix_rows[keep])
+        lo, hi = nx[kept].min(), nx[kept].max()
+        cols = np.flatnonzero((grid.col_hi >= lo) & (grid.col_lo <= hi))
+        rows = np.flatnonzero(keep)
+        if cols.size == 0:
+            return None
+        return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+
+    def _texture(self, rect: Rect, su: F32, sv: F32, cos: F32, t: F32, spacing: F32) -> F32:
+        """Grey level of surface points (su, sv) m on ``rect`` seen at range t (m) and
+        incidence cosine ``cos`` by rays ``spacing`` rad apart."""
         footprint = t * spacing / cos
         inv_texel = np.float32(1.0 / rect.texel_m)
         with np.errstate(divide="ignore"):
@@ -575,6 +728,27 @@ class Renderer:
         gain = np.float32(255.0 * rect.brightness * lambert)
         out: F32 = np.float32(10.0) + gain * val
         return out
+
+
+def _surface(loc: dict[str, object], d: F32, t: F32) -> tuple[F32, F32, F32]:
+    """Surface coordinates (su, sv), m, and |incidence cosine| of rays d (M, 3) hitting a
+    rectangle (camera-frame ``loc``) at ranges t (M,)."""
+    o, u, v, n = (np.asarray(loc[name], np.float32) for name in ("o", "u", "v", "n"))
+    su = t * (d @ u) - np.float32(o @ u)
+    sv = t * (d @ v) - np.float32(o @ v)
+    cos = np.maximum(np.abs(d @ n), np.float32(1e-3))
+    return su, sv, cos
+
+
+def _surface_rows(
+    loc: dict[str, object], rows: npt.NDArray[np.int64], d: F32, t: F32
+) -> tuple[F32, F32, F32]:
+    """:func:`_surface` with the rectangle per image row: ray i in row ``rows[i]``."""
+    o, u, v, n = (np.asarray(loc[name], np.float32)[rows] for name in ("o", "u", "v", "n"))
+    su = t * np.einsum("mi,mi->m", d, u) - np.einsum("mi,mi->m", o, u)
+    sv = t * np.einsum("mi,mi->m", d, v) - np.einsum("mi,mi->m", o, v)
+    cos = np.maximum(np.abs(np.einsum("mi,mi->m", d, n)), np.float32(1e-3))
+    return su, sv, cos
 
 
 def _unit_luma(tint: tuple[float, float, float]) -> tuple[float, float, float]:

@@ -28,7 +28,9 @@ process's maximum resident set size (it includes rendering).
 
 ``owl_bench`` (full, ``make bench``): 640x480, 1000 features, 3 s at 30 Hz per case, plus
 the :data:`REALISTIC` cases (other rates, the car, IMU models, camera effects; labels
-``NAME[@RATEhz][+IMU][+EFFECT]...[+bias]``, :func:`parse_case`).
+``NAME[@RATEhz][+IMU][+EFFECT]...[+bias]``, :func:`parse_case`). A rolling-shutter effect
+(``brisk+rs30``: a 30 ms readout) runs OWL compensating it ("owl") and ignoring it
+(:data:`UNCOMPENSATED`); the same scenario without the effect is the global shutter.
 ``owl_bench --quick``: 320x240, 300 features, 1 s, five cases (one realistic).
 ``--json`` prints one object (keys in :func:`run_bench`'s docstring).
 """
@@ -85,7 +87,13 @@ STATIC = ("cube", "scaled", "accel", "turn", "street", "receding")
 
 
 #: Image effects of real cameras a case can add (:func:`effect_frames`).
-EFFECTS = ("blur", "noise", "gain", "jpeg", "jitter", "drop")
+EFFECTS = ("blur", "noise", "gain", "jpeg", "jitter", "drop", "rs30")
+#: Rolling-shutter readout of an effect, s: the images are rendered with it, OWL runs with
+#: ``rolling_shutter_readout_s`` set to it ("owl") and once more ignoring it
+#: (:data:`UNCOMPENSATED`).
+READOUTS = {"rs30": 0.030}
+#: The extra method of a rolling-shutter case: OWL with ``rolling_shutter_readout_s`` 0.
+UNCOMPENSATED = "owl-uncomp"
 
 
 @dataclass(frozen=True)
@@ -109,6 +117,11 @@ class Case:
     seconds: float = 0.0
     imu: str = ""
     effects: tuple[str, ...] = ()
+
+    @property
+    def readout_s(self) -> float:
+        """Rolling-shutter readout of the case's images, s (0: global shutter)."""
+        return sum(READOUTS.get(x, 0.0) for x in self.effects)
 
     @property
     def label(self) -> str:
@@ -152,6 +165,8 @@ REALISTIC = (
     Case("street", imu="adis16448", effects=("jitter", "drop")),
     Case("street", imu="mems400", effects=("blur", "noise", "gain", "jpeg")),
     Case("turn", imu="mems100"),
+    Case("brisk"),
+    Case("brisk", effects=("rs30",)),
 )
 FULL = Profile(
     "full",
@@ -207,6 +222,7 @@ def _sim(case: Case, profile: Profile) -> Simulation:
         width=profile.width,
         height=profile.height,
         imu=replace(imu, gyro_bias=(b, b, b)),
+        rolling_shutter_readout_s=case.readout_s,
     )
     return scenarios.get(case.scenario).simulate(opts)
 
@@ -242,7 +258,9 @@ def effect_frames(
     (:func:`bags.sim.render.sensor_noise`); gain: a seeded auto-gain walk (x0.75 to x1.3,
     steps up to 6 % per frame, :func:`bags.sim.render.apply_gain`); jpeg: each image
     through a sensor_msgs/CompressedImage at JPEG quality 80 (the message adapters'
-    encoder and decoder); jitter / drop: :func:`effect_times`. Truth at each frame's time.
+    encoder and decoder); jitter / drop: :func:`effect_times`; rs30: a rolling shutter with
+    a 30 ms readout (the simulation's ``rolling_shutter_readout_s``, set by :func:`_sim`:
+    each row at its own time). Truth at each frame's time.
     """
     from msg_adapters.image import array_to_compressed, compressed_to_frame
 
@@ -304,8 +322,10 @@ def _cache_key(sim: Simulation, effects: tuple[str, ...] = ()) -> str:
 
 
 def sim_engine(sim: Simulation, **options: Any) -> OwlEngine:
-    """An engine for a rendered simulation: its camera, extrinsic and IMU time offset
-    (``options``: any further :class:`EngineOptions`), with the simulation's gyro added."""
+    """An engine for a rendered simulation: its camera, extrinsic, IMU time offset and
+    rolling-shutter readout (``options``: any further :class:`EngineOptions`), with the
+    simulation's gyro added."""
+    options.setdefault("rolling_shutter_readout_s", sim.options.rolling_shutter_readout_s)
     engine = OwlEngine(
         sim.options.camera(),
         EngineOptions(
@@ -407,6 +427,7 @@ class Source:
         has_mask: the truth has a moving-object mask.
         frames: callable returning an iterator of (stamp_ns, (H, W) uint8 image, Truth).
         num_frames: frames the iterator yields.
+        readout_s: rolling-shutter readout of the images, s (0: global shutter).
     """
 
     camera: CameraModel
@@ -417,6 +438,7 @@ class Source:
     has_mask: bool
     frames: Callable[[], Iterator[tuple[int, npt.NDArray[np.uint8], Truth]]]
     num_frames: int
+    readout_s: float = 0.0
 
 
 def sim_source(case: Case, frames: Frames, sim: Simulation) -> Source:
@@ -436,6 +458,7 @@ def sim_source(case: Case, frames: Frames, sim: Simulation) -> Source:
         frames.mask is not None,
         it,
         int(frames.stamps_ns.size),
+        sim.options.rolling_shutter_readout_s,
     )
 
 
@@ -466,20 +489,32 @@ def run_case(
     return run_source(case, profile, sim_source(case, frames, sim), keep_results)
 
 
-def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = False) -> CaseRun:
-    """Run OWL and both baselines at every gap of :data:`GAPS` over ``src``, on the same
-    tracks, and score them with the same owl_eval functions."""
+def _source_engine(src: Source, profile: Profile, readout_s: float) -> OwlEngine:
+    """OWL for a source: its extrinsic, offset and gyro, the profile's features."""
     engine = OwlEngine(
         src.camera,
         EngineOptions(
             camera_to_imu_rotation_xyzw=src.camera_to_imu_xyzw,
             imu_time_offset_s=src.imu_time_offset_s,
             max_features=profile.features,
+            rolling_shutter_readout_s=readout_s,
         ),
     )
+    engine.add_gyro(src.gyro)
+    return engine
+
+
+def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = False) -> CaseRun:
+    """Run OWL and both baselines at every gap of :data:`GAPS` over ``src``, on the same
+    tracks, and score them with the same owl_eval functions. Rolling-shutter images: OWL
+    compensates the readout ("owl"), and runs once more ignoring it
+    (:data:`UNCOMPENSATED`, on its own tracks)."""
+    engine = _source_engine(src, profile, src.readout_s)
     clock = time.process_time if profile.clock == "cpu" else time.perf_counter
     engine.clock = clock
-    engine.add_gyro(src.gyro)
+    uncompensated = _source_engine(src, profile, 0.0) if src.readout_s else None
+    if uncompensated is not None:
+        uncompensated.clock = clock
     gyro = engine.gyro
 
     def rotation(t0: int, t1: int) -> npt.NDArray[np.float64] | None:
@@ -493,9 +528,10 @@ def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = F
         baselines[f"cv-gyro@{g}"] = TwoViewBaseline(
             src.camera, BaselineOptions(method="gyro", gap_frames=g), rotation
         )
-    run = CaseRun(case, src.num_frames, {m: [] for m in METHODS})
+    methods = (*METHODS, UNCOMPENSATED) if uncompensated is not None else METHODS
+    run = CaseRun(case, src.num_frames, {m: [] for m in methods})
     run.has_mask = src.has_mask
-    run.estimate_s = dict.fromkeys(METHODS, 0.0)
+    run.estimate_s = dict.fromkeys(methods, 0.0)
     run.baseline_results = {m: [] for m in baselines}
     for base in baselines.values():
         base.clock = clock
@@ -510,6 +546,12 @@ def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = F
         run.track_s += track_s
         run.estimate_s["owl"] += res.timings.get("total", 0.0) - track_s
         run.scores["owl"].append(score_frame(owl_estimate(res), truth, src.truth_bias))
+        if uncompensated is not None:
+            plain = uncompensated.process(ImageFrame(stamp, image))
+            run.estimate_s[UNCOMPENSATED] += plain.timings.get("total", 0.0)
+            run.scores[UNCOMPENSATED].append(
+                score_frame(owl_estimate(plain), truth, src.truth_bias)
+            )
         tracks = engine.last_tracks  # the very tracks OWL used for this frame
         if tracks is not None:
             n_tracks += tracks.num_tracks
@@ -562,7 +604,7 @@ def best_baselines(methods: dict[str, dict[str, Any]]) -> dict[str, Any]:
     translating frame), "owl_range_ok" (the same for the r/|t| median and p90; None when
     nothing is scored).
     """
-    base = [m for m in methods if m != "owl"]
+    base = [m for m in methods if not m.startswith("owl")]
     out: dict[str, Any] = {}
     for fam in BASELINES:
         members = [m for m in base if m.startswith(fam + "@")]
@@ -600,7 +642,7 @@ def case_report(run: CaseRun) -> dict[str, Any]:
     """JSON-ready row of one case: every method (OWL, each baseline at each gap) and the
     best baselines (:func:`best_baselines`)."""
     stages = {k: 1e3 * v / max(run.frames, 1) for k, v in run.owl_stage_s.items()}
-    methods = {m: _method_row(run, m) for m in METHODS}
+    methods = {m: _method_row(run, m) for m in run.scores}
     return {
         "case": run.case.label,
         "scenario": run.case.scenario,

@@ -160,6 +160,9 @@ def test_bad_input_one_line_nothing_written(tmp_path: Path, capsys) -> None:
     _one_line_error(capsys, ["street", str(out), "--height", "x"], "--height")
     _one_line_error(capsys, ["street", str(out), "--gyro-bias", "1,2"], "--gyro-bias")
     _one_line_error(capsys, ["street"], "need SCENARIO and OUT_BAG")
+    _one_line_error(
+        capsys, ["street", str(out), "--rolling-shutter-readout", "-1"], "readout must be in"
+    )
     assert list(tmp_path.iterdir()) == []
     assert main(["still", str(out), *ARGS]) == 0
     before = (out / "metadata.yaml").read_text()
@@ -169,6 +172,18 @@ def test_bad_input_one_line_nothing_written(tmp_path: Path, capsys) -> None:
     with BagReader(out) as bag:
         assert bag.topics["/camera/image_raw"].count == 4
     assert [p.name for p in tmp_path.iterdir()] == ["bag"]  # no temporary left
+
+
+def test_rolling_shutter_option_renders_rows_at_their_times(tmp_path: Path) -> None:
+    out = tmp_path / "rs"
+    assert main(["brisk", str(out), *ARGS, "--rolling-shutter-readout", "0.03"]) == 0
+    sim = _sim("brisk", rolling_shutter_readout_s=0.03)
+    with BagReader(out) as bag:
+        meta = json.loads(bag.custom_data["owl_make_bag"])
+        first = bag.deserialize(next(bag.messages(["/camera/image_raw"])))
+    assert meta["rolling_shutter_readout"] == 0.03
+    image = np.frombuffer(bytes(first.data), dtype=np.uint8).reshape(first.height, first.width)
+    np.testing.assert_array_equal(image, sim.frame(0).image)
 
 
 def test_gyro_bias_scalar_is_magnitude_along_diagonal(tmp_path: Path) -> None:

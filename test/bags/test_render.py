@@ -221,3 +221,48 @@ def test_camera_effects_blur_gain_and_noise() -> None:
     assert np.var(noisy.astype(float)) == pytest.approx(6.25 + 1 / 12, rel=0.05)
     with pytest.raises(ScenarioError):
         apply_gain(a, 0.0)
+
+
+def test_render_rows_with_one_pose_is_the_global_render_and_checks_its_input() -> None:
+    camera = _camera()
+    scene = _scene()
+    r = Renderer(camera, supersample=2, noise_sigma=0.0)
+    h = camera.height
+    rows = r.render_rows([scene] * h, np.repeat(R_WC[None], h, 0), np.repeat(C_W[None], h, 0))
+    flat = r.render(scene, R_WC, C_W)
+    diff = np.abs(rows.image.astype(int) - flat.image.astype(int))
+    assert diff.max() <= 1 and np.mean(diff > 0) < 0.002  # float32 rounding only
+    np.testing.assert_array_equal(rows.object_id, flat.object_id)
+    fin = np.isfinite(flat.range_m)
+    np.testing.assert_array_equal(np.isfinite(rows.range_m), fin)
+    np.testing.assert_allclose(rows.range_m[fin], flat.range_m[fin], rtol=1e-5)
+    with pytest.raises(ScenarioError, match="rolling-shutter pose needs 120 rows"):
+        r.render_rows([scene] * 3, np.repeat(R_WC[None], 3, 0), np.repeat(C_W[None], 3, 0))
+    with pytest.raises(ScenarioError, match="same rectangles"):
+        r.render_rows(
+            [scene] * (h - 1) + [scene[:2]],
+            np.repeat(R_WC[None], h, 0),
+            np.repeat(C_W[None], h, 0),
+        )
+
+
+def test_render_rows_sees_each_row_from_its_own_pose() -> None:
+    """Row r of a rolling render equals row r of a global render from row r's pose."""
+    camera = _camera()
+    scene = _scene()
+    r = Renderer(camera, supersample=2, noise_sigma=0.0)
+    h = camera.height
+    yaw = np.linspace(0.0, 0.03, h)  # the camera turns 0.03 rad and moves 4 cm during readout
+    rot = np.array(
+        [[[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]] for a in yaw]
+    )
+    r_rows = rot @ R_WC
+    c_rows = C_W + np.outer(np.linspace(0.0, 0.04, h), [1.0, 0.0, 0.0])
+    out = r.render_rows([scene] * h, r_rows, c_rows)
+    for row in (0, 37, 80, h - 1):
+        ref = r.render(scene, r_rows[row], c_rows[row])
+        assert np.abs(out.image[row].astype(int) - ref.image[row].astype(int)).max() <= 1
+        np.testing.assert_array_equal(out.object_id[row], ref.object_id[row])
+    # the rows really differ: a global render from row 0's pose is elsewhere at the bottom
+    first = r.render(scene, r_rows[0], c_rows[0])
+    assert np.abs(out.image[-1].astype(int) - first.image[-1].astype(int)).mean() > 5

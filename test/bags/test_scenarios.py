@@ -37,6 +37,7 @@ def test_listing_and_unknown_name() -> None:
         "car",
         "sideways",
         "slow_start",
+        "brisk",
     }
     assert set(scenarios.names()) == expected
     assert all(
@@ -273,3 +274,33 @@ def test_imu_models_per_sample_noise_follows_the_density() -> None:
     sim = scenarios.get("still").simulate(replace(SMALL, seconds=2.0, imu=mems))
     noise = sim.imu.angular_velocity - sim.imu.true_angular_velocity - sim.imu.gyro_bias
     assert np.std(noise) == pytest.approx(mems.gyro_noise, rel=0.05)  # 2400 samples
+
+
+def test_rolling_shutter_rows_at_their_times_and_range_at_the_stamp() -> None:
+    """Row r is the scene at stamp + (r / H) T; the range truth is measured from the camera
+    centre at the stamp to the point each pixel sees."""
+    readout = 0.03
+    opts = replace(SMALL, seconds=0.5)
+    rolling = scenarios.get("brisk").simulate(replace(opts, rolling_shutter_readout_s=readout))
+    glob = scenarios.get("brisk").simulate(opts)
+    f = rolling.frame(3)
+    h = rolling.camera.height
+    cam = rolling.camera
+    for row in (0, 40, h - 1):
+        t_row = f.t + row / h * readout
+        g = glob.frame_at(t_row, 3)
+        assert np.abs(f.image[row].astype(int) - g.image[row].astype(int)).max() <= 1
+        np.testing.assert_array_equal(f.object_id[row], g.object_id[row])
+        # the point pixel (u, row) sees, from row's pose, measured from the stamp's centre
+        fin = np.isfinite(g.range_m[row])
+        pix = np.stack([np.arange(cam.width), np.full(cam.width, row)], -1).astype(float)
+        rays = cam.pixel_to_bearing(pix[fin]) @ g.R_wc.T
+        world = g.c_w + g.range_m[row, fin, None].astype(float) * rays
+        expected = np.linalg.norm(world - f.c_w, axis=1)
+        np.testing.assert_allclose(f.range_m[row, fin], expected, rtol=2e-5)
+    # twist and pose are those of the stamp; the IMU reaches past the last row
+    np.testing.assert_allclose(f.velocity, glob.frame(3).velocity, atol=1e-12)
+    last = rolling.frame_stamps_ns[-1] + round(readout * 1e9) + rolling.imu_time_offset_ns
+    assert rolling.imu.stamp_ns[-1] >= last
+    with pytest.raises(ScenarioError, match="readout"):
+        SimOptions(rolling_shutter_readout_s=-0.01)

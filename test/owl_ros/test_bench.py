@@ -188,3 +188,22 @@ def test_cache_goes_to_the_user_cache_dir_and_is_named(tmp_path, monkeypatch, ca
     cache = tmp_path / "xdg" / "owl_ros" / "frames"
     assert f"owl_bench: frame cache: {cache}\n" in capsys.readouterr().err
     assert list(cache.glob("still_320x240_*.npz")) and list(run.iterdir()) == []
+
+
+def test_rolling_shutter_case_runs_owl_compensating_and_ignoring_the_readout(tmp_path):
+    case = bench.parse_case("brisk+rs30")
+    assert case.readout_s == 0.03 and case.label == "brisk+rs30"
+    profile = bench.Profile("tiny", 160, 120, 0.4, 120, (case,))
+    sim = bench._sim(case, profile)
+    assert sim.options.rolling_shutter_readout_s == 0.03
+    frames = bench.load_frames(sim, tmp_path, case=case)
+    np.testing.assert_array_equal(frames.images[2], sim.frame(2).image)  # rows at their times
+    report = bench.case_report(bench.run_case(case, profile, frames, sim))
+    assert set(report["methods"]) == {*bench.METHODS, bench.UNCOMPENSATED}
+    assert not report["best"]["heading"].startswith("owl")  # a baseline, not OWL's variant
+    assert report["methods"][bench.UNCOMPENSATED]["frames"] == frames.stamps_ns.size
+    glob = bench._sim(bench.Case("brisk"), profile)
+    plain = bench.case_report(
+        bench.run_case(bench.Case("brisk"), profile, bench.load_frames(glob, None), glob)
+    )
+    assert set(plain["methods"]) == set(bench.METHODS)  # a global-shutter case: OWL once

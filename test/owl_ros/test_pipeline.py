@@ -366,6 +366,38 @@ def test_bounded_wait_for_imu(feed: Feed) -> None:
     assert any("IMU does not cover" in r for r in outs[0].result.reasons)
 
 
+def test_rolling_shutter_frame_waits_for_imu_up_to_its_last_row(feed: Feed) -> None:
+    stamps = [header_to_ns(i.header) for i in feed.images]
+    for readout, waits in ((0.0, False), (0.03, True)):
+        pipe = make(options(feed, rolling_shutter_readout_s=readout, imu_wait_s=0.1))
+        # the IMU up to 10 ms past frame 4: its rows reach 30 ms past it
+        imus = [i for i in feed.imus if header_to_ns(i.header) <= stamps[4] + 10_000_000]
+        outs = run(pipe, events(feed, images=feed.images[:5], imus=imus), flush=False)
+        assert len(outs) == (4 if waits else 5)
+        if waits:
+            rest = [i for i in feed.imus if header_to_ns(i.header) > stamps[4] + 10_000_000]
+            now = stamps[4] + 31_000_000
+            at(pipe, now).add_imus(rest[:12], now)
+            outs = pipe.poll()
+            assert len(outs) == 1 and outs[0].result.num_points > 0
+
+
+def test_calibration_check_switch(feed: Feed) -> None:
+    pipe = make(options(feed, calibration_check=False))
+    run(pipe, events(feed, images=feed.images[:3]), flush=True)
+    assert pipe._calibration is None
+    engine = pipe.engine
+    pipe.reconfigure(replace(pipe.options, calibration_check=True))  # at runtime
+    assert pipe._calibration is not None and pipe.engine is engine
+    pipe.reconfigure(replace(pipe.options, calibration_check=False))
+    assert pipe._calibration is None and pipe.calibration_verdict is None
+    # with a rolling shutter the check's images refer to their middle row on average
+    pipe = make(options(feed, imu_time_offset=0.01, rolling_shutter_readout_s=0.03))
+    run(pipe, events(feed, images=feed.images[:2]), flush=True)
+    assert pipe._calibration is not None
+    assert pipe._calibration._offset == pytest.approx(0.025, abs=1e-12)
+
+
 def test_newest_frame_wins_when_queue_full(feed: Feed) -> None:
     pipe = make(options(feed, queue_size=2))
     run(pipe, events(feed, images=feed.images[:2]), flush=True)

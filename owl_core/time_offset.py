@@ -1,0 +1,201 @@
+"""Online estimate of a residual camera-IMU time offset from the flow (as OpenVINS does).
+
+Why it is observable
+--------------------
+The engine derotates each track with the gyro rotation between its frames. With the IMU
+clock read ``delta`` off (the configured ``imu_time_offset`` differs from the true one by
+``delta``), each rotation is the one of an interval shifted by ``delta``: column k's bearing
+is off by about ``phi_k delta``, ``phi_k = Omega(now) - Omega(s_k)`` (rates carried to the
+current camera frame). The track fit turns that into a leftover rotation rate
+``J delta``, ``J`` the slope of ``phi_k`` over the window's frame times, i.e. minus the
+angular acceleration: a time offset looks like a gyro bias proportional to ``dOmega/dt``.
+The heading estimator measures the leftover rotation of every frame; a bias is constant
+(a slow random walk) while ``dOmega/dt`` changes direction and size, so the two separate.
+
+The filter
+----------
+:class:`TimeOffsetFilter` is a Kalman filter on ``x = (offset, b)``: the true offset (s,
+IMU stamp minus camera stamp, as ``imu_time_offset``) and the true gyro bias in the camera
+frame (rad/s; a nuisance here, the engine's own bias filter keeps its estimate). Each frame
+gives the leftover rotation ``r`` (estimated jointly with the heading, with a wide prior so
+that it is not shrunk) measured with the bias ``b_used`` and offset ``o_used`` the frame
+was derotated with::
+
+    r = b_used - b + L(offset - o_used) + noise
+
+``L`` (the caller computes it from the gyro, exactly: the derotation with the camera times
+shifted) is nonlinear in the offset error (5-10 % at 40 ms while turning at 0.5 Hz), so the
+filter is an extended Kalman filter linearised at its current estimate,
+``H = [L'(offset_est - o_used), -I]``.
+
+Its information is divided by ``inflation`` (consecutive fit windows share frames) and a
+measurement farther than a chi-square gate (3 dof, 99.9 %) from the prediction is dropped.
+
+Units: seconds, radians; the caller supplies J (s^-2... rad/s per s) from the gyro.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from owl_core.errors import InvalidInputError
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["TimeOffsetFilter", "TimeOffsetOptions"]
+
+#: chi-square 99.9 % quantile with 3 degrees of freedom (the measurement gate).
+GATE = 16.27
+
+
+@dataclass(frozen=True)
+class TimeOffsetOptions:
+    """Settings of :class:`TimeOffsetFilter`.
+
+    Attributes:
+        initial_sigma_s: 1-sigma of the configured offset, s (> 0).
+        random_walk_s: offset random walk, s/sqrt(s) (>= 0; clocks drift slowly).
+        bias_sigma: 1-sigma of the initial bias (camera frame), rad/s (> 0).
+        bias_random_walk: bias random walk, rad/s/sqrt(s) (>= 0).
+        inflation: divisor (>= 1) of each frame's information.
+        min_excitation: frames whose |J| (the window's angular acceleration) is below
+            this carry no offset information and are skipped, rad/s^2 (>= 0).
+    """
+
+    initial_sigma_s: float = 0.05
+    random_walk_s: float = 1e-4
+    bias_sigma: float = 0.02
+    bias_random_walk: float = 1e-4
+    inflation: float = 3.0
+    min_excitation: float = 0.05
+
+    def __post_init__(self) -> None:
+        for name in ("initial_sigma_s", "bias_sigma"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise InvalidInputError(f"{name} must be positive and finite, got {value!r}")
+        for name in ("random_walk_s", "bias_random_walk", "min_excitation"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InvalidInputError(f"{name} must be >= 0 and finite, got {value!r}")
+        if not self.inflation >= 1.0:
+            raise InvalidInputError(f"inflation must be >= 1, got {self.inflation!r}")
+
+
+class TimeOffsetFilter:
+    """Kalman filter on the camera-IMU time offset and the gyro bias (module docstring).
+
+    Args:
+        initial_offset_s: the configured offset, s.
+        initial_bias_camera: (3,) the configured bias, camera frame, rad/s.
+        options: settings.
+    """
+
+    def __init__(
+        self,
+        initial_offset_s: float,
+        initial_bias_camera: npt.ArrayLike = (0.0, 0.0, 0.0),
+        options: TimeOffsetOptions | None = None,
+    ) -> None:
+        self.options = opts = options if options is not None else TimeOffsetOptions()
+        bias = np.asarray(initial_bias_camera, dtype=np.float64)
+        if bias.shape != (3,) or not math.isfinite(initial_offset_s):
+            raise InvalidInputError(
+                f"need a finite offset and a (3,) bias, got {initial_offset_s!r}, {bias!r}"
+            )
+        self._x0 = np.concatenate([[float(initial_offset_s)], bias])
+        self._p0 = np.diag([opts.initial_sigma_s**2] + [opts.bias_sigma**2] * 3)
+        self.x = self._x0.copy()
+        self.cov = self._p0.copy()
+        self.updates = 0
+        self.rejected = 0
+
+    @property
+    def offset_s(self) -> float:
+        """The offset estimate, s."""
+        return float(self.x[0])
+
+    @property
+    def offset_sigma_s(self) -> float:
+        """Its 1-sigma, s."""
+        return math.sqrt(float(self.cov[0, 0]))
+
+    def reset(self) -> None:
+        """Back to the configured offset and bias."""
+        self.x = self._x0.copy()
+        self.cov = self._p0.copy()
+        self.updates = 0
+        self.rejected = 0
+
+    def predict(self, dt_s: float) -> None:
+        """Grow the uncertainty by the random walks over ``dt_s`` seconds (>= 0)."""
+        if not dt_s >= 0:
+            raise InvalidInputError(f"dt_s must be >= 0, got {dt_s!r}")
+        o = self.options
+        q = [o.random_walk_s**2 * dt_s] + [o.bias_random_walk**2 * dt_s] * 3
+        self.cov = self.cov + np.diag(q)
+
+    def update(
+        self,
+        leftover: npt.ArrayLike,
+        leftover_cov: npt.ArrayLike,
+        offset_leftover: npt.ArrayLike,
+        jacobian: npt.ArrayLike,
+        at_offset_s: float,
+        used_bias_camera: npt.ArrayLike,
+    ) -> bool:
+        """Apply one frame's leftover rotation.
+
+        Args:
+            leftover: (3,) leftover rotation rate r, camera frame, rad/s (f_true = f + r x e).
+            leftover_cov: (3, 3) its covariance (no prior in it), (rad/s)^2.
+            offset_leftover: (3,) L at ``at_offset_s``: the leftover rotation this frame
+                would show if the true offset were ``at_offset_s``, rad/s.
+            jacobian: (3,) dL/d offset there, rad/s per s.
+            at_offset_s: the offset of that linearisation point, s (the current estimate
+                when the gyro covers it).
+            used_bias_camera: (3,) the bias it was derotated with, camera frame, rad/s.
+
+        Returns:
+            True when applied; False when the frame had too little angular acceleration,
+            a singular covariance, or failed the gate.
+        """
+        r = np.asarray(leftover, dtype=np.float64)
+        c = np.asarray(leftover_cov, dtype=np.float64) * self.options.inflation
+        lo = np.asarray(offset_leftover, dtype=np.float64)
+        j = np.asarray(jacobian, dtype=np.float64)
+        b_used = np.asarray(used_bias_camera, dtype=np.float64)
+        shapes = (r.shape, c.shape, lo.shape, j.shape, b_used.shape)
+        if shapes != ((3,), (3, 3), (3,), (3,), (3,)):
+            raise InvalidInputError(
+                f"need (3,) leftover, (3, 3) covariance, (3,) model leftover, jacobian and "
+                f"bias, got {', '.join(map(str, shapes))}"
+            )
+        arrays = (r, c, lo, j)
+        if not all(np.all(np.isfinite(a)) for a in arrays):
+            return False
+        if float(np.linalg.norm(j)) < self.options.min_excitation:
+            return False
+        predicted = b_used - self.x[1:] + lo + j * (self.x[0] - float(at_offset_s))
+        h = np.zeros((3, 4))
+        h[:, 0] = j
+        h[:, 1:] = -np.eye(3)
+        s = h @ self.cov @ h.T + c
+        try:
+            s_inv = np.linalg.inv(s)
+        except np.linalg.LinAlgError:
+            return False
+        innovation = r - predicted
+        if float(innovation @ s_inv @ innovation) > GATE:
+            self.rejected += 1
+            return False
+        gain = self.cov @ h.T @ s_inv
+        self.x = self.x + gain @ innovation
+        ikh = np.eye(4) - gain @ h
+        self.cov = ikh @ self.cov @ ikh.T + gain @ c @ gain.T  # Joseph form
+        self.updates += 1
+        return True
