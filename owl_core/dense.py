@@ -36,11 +36,14 @@ chain of stages, each a function returning a small record:
    no 3-vector arithmetic; ``z/|t|``, the scaled points and ``omega`` now are computed
    only when asked for (:class:`DenseResult` properties).
 5. **confidence** (:func:`_confidence`, 0..1 per pixel): texture (smallest eigenvalue of
-   the structure tensor), forward-backward flow consistency, the local fit's residual
-   against the flow noise, the precision of L relative to ``|ToR|``, the agreement of the
-   two L routes; a pixel is *confident* at or above ``min_confidence``.
-6. **time to contact** (:func:`_ttc`): ``1/L`` for the confident approaching pixels inside
-   the path cone (bearings within ``ttc_cone_deg`` of the heading), and the shortest.
+   the structure tensor) times the agreement of the two L routes over one plus the
+   predicted relative variance of r/|t| (from the variance of L, whose local-rule part
+   comes from the fit's residual, and from the forward-backward flow disagreement taken
+   as the flow's error); a pixel is *confident* at or above ``min_confidence``.
+6. **time to contact** (:func:`_ttc`): ``1/L`` inside the path cone (bearings within
+   ``ttc_cone_deg`` of the heading), L first averaged over ``ttc_window_px`` squares with
+   inverse-variance weights (the k-th smallest of noisy per-pixel values is biased short),
+   and the shortest (its ``ttc_min_pixels``-th smallest value).
 
 Everything is vectorised over pixels (numpy and OpenCV filters) and works in float32 on
 per-component planes (``(3, h, w)`` arrays: contiguous, so numpy's SIMD loops run on
@@ -119,18 +122,23 @@ class DenseOptions:
             independent-noise least squares understates the gradient's error (30 matched
             the spread of the local-rule L against the truth on the street scene),
             dimensionless (> 0).
-        fb_max_px: forward-backward flow disagreement at which the consistency factor is
-            halved, working pixels (pixels beyond 2x this are left out of the local fit).
+        fb_max_px: pixels whose forward-backward flow disagreement exceeds 2x this are
+            left out of the local fit, working pixels.
         heading_min_sin: no heading-route L closer than asin(this) to the focus of
             expansion (or its antipode), dimensionless.
         max_disagreement: a pixel whose two L routes differ by this many combined sigmas
             has its confidence halved (something moving, or an outlier).
-        rel_sigma: relative 1-sigma of r/|t| at which the precision factor of the
-            confidence is halved, dimensionless.
+        rel_sigma: predicted relative 1-sigma of r/|t| (from the variance of L and the
+            forward-backward flow disagreement taken as the flow's error) at which the
+            precision factor of the confidence is halved, dimensionless.
         min_confidence: confidence (0..1) at or above which a pixel is *confident*.
         ttc_cone_deg: half-angle of the path cone about the heading, degrees.
         ttc_min_pixels: the shortest time to contact is the ``ttc_min_pixels``-th smallest
-            over the confident cone pixels (one noisy pixel is not an obstacle), count.
+            over the cone pixels (one noisy pixel is not an obstacle), count.
+        ttc_window_px: L is averaged (inverse-variance weights) over a square of this side
+            before the time to contact is read from it: the k-th smallest of noisy
+            values is biased short by about 2 sigma for k = 20 of ~1000 cone pixels,
+            working pixels (odd, >= 1).
     """
 
     width: int = 320
@@ -145,10 +153,11 @@ class DenseOptions:
     fb_max_px: float = 0.3
     heading_min_sin: float = 0.05
     max_disagreement: float = 4.0
-    rel_sigma: float = 0.1
+    rel_sigma: float = 0.09
     min_confidence: float = 0.5
     ttc_cone_deg: float = 10.0
     ttc_min_pixels: int = 20
+    ttc_window_px: int = 25
 
     def __post_init__(self) -> None:
         for name, low in (
@@ -160,9 +169,10 @@ class DenseOptions:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise InvalidInputError(f"dense {name} must be an integer >= {low}, got {value!r}")
-        w = self.window_px
-        if isinstance(w, bool) or not isinstance(w, int) or w < 3 or w % 2 == 0:
-            raise InvalidInputError(f"dense window_px must be an odd integer >= 3, got {w!r}")
+        for name, low in (("window_px", 3), ("ttc_window_px", 1)):
+            w = getattr(self, name)
+            if isinstance(w, bool) or not isinstance(w, int) or w < low or w % 2 == 0:
+                raise InvalidInputError(f"dense {name} must be an odd integer >= {low}, got {w!r}")
         if self.local_step not in (1, 2):
             raise InvalidInputError(f"dense local_step must be 1 or 2, got {self.local_step!r}")
         if self.preset not in DIS_PRESETS:
@@ -192,14 +202,15 @@ class TimeToContact:
     """Time to contact inside the path cone for one frame.
 
     Attributes:
-        image: (h, w) float32 ``1/L`` (s) of the confident approaching pixels inside the
-            path cone, NaN elsewhere.
+        image: (h, w) float32 ``1/L`` (s) inside the path cone, L averaged over
+            ``ttc_window_px`` squares, where that average is approaching and known to
+            10 %; NaN elsewhere.
         seconds: the shortest time to contact in the cone (the ``ttc_min_pixels``-th
             smallest value of ``image``), s; NaN when there is none.
         pixel: (2,) (u, v) of that pixel in the *input* image (distorted), or None.
         bearing: (3,) unit bearing of that pixel (camera optical frame), or None.
         pixels_in_cone: number of working pixels inside the cone, count.
-        confident_in_cone: confident approaching pixels inside the cone, count.
+        confident_in_cone: pixels of ``image`` (approaching, precise), count.
     """
 
     image: F32
@@ -219,6 +230,7 @@ class _Mid:
         e_mid: (3, h, w) float32 unit bearing at the middle of the baseline.
         f: (3, h, w) float32 derotated bearing rate there, 1/s (perpendicular to e_mid).
         looming: (h, w) float32 fused L at the middle of the baseline, 1/s.
+        var_l: (h, w) float32 its variance, 1/s^2.
         tor: (h, w) float32 ``|ToR|`` there, 1/s (1 where invalid).
     """
 
@@ -226,6 +238,7 @@ class _Mid:
     e_mid: F32
     f: F32
     looming: F32
+    var_l: F32
     tor: F32
 
 
@@ -619,6 +632,9 @@ def _local_rule(
     # n = rot90(f)/|f|: n^T J n = (fy^2 j00 - fx fy (j01 + j10) + fx^2 j11) / |f|^2
     num = fy * fy * j00 - fx * fy * (j01 + j10) + fx * fx * j11 + 0.5 * eps2 * (j00 + j11)
     looming = num / (fx * fx + fy * fy + eps2)
+    # J is the gradient wrt the *current* position; the mid position moved by -f dt/2,
+    # so J_mid = J (I - J dt/2)^-1 ~ J + J^2 dt/2, and n^T J^2 n ~ L^2 (J ~ L I + f g^T)
+    looming *= 1.0 + looming * np.float32(0.5 / inv_dt)
     # variance of a gradient of the window fit, per radian (uniform-window approximation,
     # inflated by the fraction of the window the fit could not use)
     n_win = local_fit.window
@@ -711,6 +727,10 @@ class _Fused:
         range_over_speed: (h, w) float32 r/|t| at the current stamp, s.
         disagree2: (h, w) float32 squared difference of the two routes in combined
             sigmas (0 where either is missing).
+        flow_gain2: (h, w) float32 squared gain from an error of ``|f|`` to the relative
+            error of ``|ToR|``, s^2: ``((w_h L L_h / |f| + |f|) / |ToR|^2)^2`` with ``w_h``
+            the heading route's share of the fusion (``1/|f|^2`` when it carries L, about
+            ``|f|^2/L^4``, small, near the focus of expansion where the local rule does).
         ok: (h, w) bool, a valid r/|t|.
     """
 
@@ -720,6 +740,7 @@ class _Fused:
     looming: F32
     range_over_speed: F32
     disagree2: F32
+    flow_gain2: F32
     ok: BoolArray
 
 
@@ -754,45 +775,56 @@ def _fuse(field: _Field, local: _Local, route: _Route | None, scale: float, dt_s
     ros_now = np.sqrt(k * k + f2h * half) / tor
     ok &= k * c + f2h * half > 0  # p_now . e_now > 0: still in front
     looming = (l_mid * c - f2h) / (tor * np.where(ok, ros_now, 1.0))
-    return _Fused(l_mid, var_l, tor, looming, ros_now, disagree2, ok)
+    tor2 += ~ok
+    gain = (wh * var_l * l_mid * l_head + field.f2) / tor2
+    gain2 = gain * gain / (field.f2 + np.float32(1e-20))
+    return _Fused(l_mid, var_l, tor, looming, ros_now, disagree2, gain2, ok)
 
 
 def _confidence(
-    options: DenseOptions,
-    tex: F32,
-    fb2: F32,
-    field: _Field,
-    local: _Local,
-    fused: _Fused,
+    options: DenseOptions, tex: F32, fb2: F32, field: _Field, fused: _Fused
 ) -> tuple[F32, BoolArray]:
-    """Per-pixel confidence (0..1, 0 where not ok) and the confident mask: the product of
-    texture, forward-backward consistency, fit residual, precision and agreement
-    factors, each ``1/(1 + (x/x_half)^2)``-shaped."""
+    """Per-pixel confidence (0..1, 0 where not ok) and the confident mask.
+
+    ``q_tex q_agree / (1 + v / rel_sigma^2)``: texture ``tex/(tex + min_texture)``, the
+    agreement of the two L routes ``1/(1 + (d/max_disagreement)^2)`` (d in combined
+    sigmas: a mover, an outlier) and the predicted relative variance of r/|t|,
+    ``v = var(L)/|ToR|^2 + gain^2 var(|f|)`` with ``var(|f|)`` from the forward-backward
+    disagreement (half its square: the errors of two flows add), in 1/s.
+    """
     o = options
-    sf2 = field.sigma_f * field.sigma_f
-    q = tex / (tex + np.float32(o.min_texture))
-    # each factor's denominator 1 + (x / x_half)^2, multiplied up
-    with np.errstate(over="ignore"):  # a factor without an estimate: inf, confidence 0
-        den = 1.0 + fb2 * np.float32(1.0 / o.fb_max_px**2)
-        den *= 1.0 + local.s2_fit / (9.0 * sf2)
-        den *= 1.0 + fused.var_l / (fused.tor * fused.tor * np.float32(o.rel_sigma**2))
+    px_per_s2 = field.sigma_f * field.sigma_f * np.float32(1.0 / o.flow_noise_px**2)
+    with np.errstate(over="ignore"):  # no estimate: inf, confidence 0
+        rel_var = fused.var_l / (fused.tor * fused.tor)
+        rel_var += 0.5 * fb2 * px_per_s2 * fused.flow_gain2
+        den = 1.0 + rel_var * np.float32(1.0 / o.rel_sigma**2)
         den *= 1.0 + fused.disagree2 * np.float32(1.0 / o.max_disagreement**2)
-    conf = q / den
+        den *= tex + np.float32(o.min_texture)
+    conf = tex / den
     conf[~fused.ok] = 0.0
     np.nan_to_num(conf, copy=False, nan=0.0)
     return conf, fused.ok & (conf >= o.min_confidence)
 
 
 def _ttc(
-    grid: _Grid, options: DenseOptions, looming: F32, confident: BoolArray, heading: F64
+    grid: _Grid, options: DenseOptions, looming: F32, var_l: F32, heading: F64
 ) -> TimeToContact:
-    """``1/L`` of the confident approaching pixels in the path cone and the shortest."""
+    """``1/L`` in the path cone, L averaged over ``ttc_window_px`` squares with weights
+    ``1/var(L)`` (valid pixels only), and the ``ttc_min_pixels``-th shortest of the
+    approaching cone pixels whose average is known to 10 % (1-sigma)."""
     h = heading / np.linalg.norm(heading)
-    cos = _dot_const(grid.e, h)
-    cone = cos >= math.cos(math.radians(options.ttc_cone_deg))
-    approaching = cone & confident & (looming > 0)
+    cone = _dot_const(grid.e, h) >= np.float32(math.cos(math.radians(options.ttc_cone_deg)))
+    valid = np.isfinite(looming)
+    weight = np.where(valid, 1.0 / var_l, 0.0).astype(np.float32)
+    box = (options.ttc_window_px, options.ttc_window_px)
+    wsum = cv2.boxFilter(weight, -1, box, normalize=False)
+    lsum = cv2.boxFilter(weight * np.where(valid, looming, 0.0), -1, box, normalize=False)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = lsum / wsum
+        # 1-sigma of the average (independent pixels: optimistic) under 10 % of it
+        approaching = cone & valid & (mean > 0) & (wsum * mean * mean > 100.0)
     image = np.full(looming.shape, np.nan, dtype=np.float32)
-    image[approaching] = 1.0 / looming[approaching]
+    image[approaching] = 1.0 / mean[approaching]
     n = int(np.count_nonzero(approaching))
     if n == 0:
         return TimeToContact(image, math.nan, None, None, int(np.count_nonzero(cone)), 0)
@@ -800,8 +832,7 @@ def _ttc(
     values = image.reshape(-1)[flat]
     k = min(options.ttc_min_pixels, n) - 1
     pick = int(np.argpartition(values, k)[k])
-    index = flat[pick]
-    row, col = divmod(int(index), looming.shape[1])
+    row, col = divmod(int(flat[pick]), looming.shape[1])
     return TimeToContact(
         image,
         float(values[pick]),
@@ -830,7 +861,7 @@ def time_to_contact(
     if hv.shape != (3,) or not np.all(np.isfinite(hv)) or not np.linalg.norm(hv) > 0:
         raise InvalidInputError(f"heading must be a finite non-zero (3,) vector, got {hv!r}")
     grid = _grid(camera, options.width, options.height)
-    return _ttc(grid, options, result.looming, result.confident, hv)
+    return _ttc(grid, options, result.looming, result.mid.var_l, hv)
 
 
 # ---------------------------------------------------------------------------- a frame
@@ -902,12 +933,12 @@ def dense_owl(
     else:
         reasons.append("no heading from the sparse engine: L from the local rule only")
     fused = _fuse(field, local, route, o.local_variance_scale, dt_s)
-    conf, confident = _confidence(o, tex, flow.fb2, field, local, fused)
+    conf, confident = _confidence(o, tex, flow.fb2, field, fused)
     if not fused.ok.any():
         reasons.append("no pixel has a valid r/|t| (no translation signal)")
     nan = np.float32(np.nan)
     looming = np.where(fused.ok, fused.looming, nan)
-    ttc = None if heading is None else _ttc(grid, o, looming, confident, heading)
+    ttc = None if heading is None else _ttc(grid, o, looming, fused.var_l, heading)
     clock.lap("fuse")
     return DenseResult(
         stamp_ns=int(stamp_ns),
@@ -924,7 +955,7 @@ def dense_owl(
         ),
         flow=flow.back,
         ttc=ttc,
-        mid=_Mid(grid.bearings, field.e_mid, field.f, fused.l_mid, fused.tor),
+        mid=_Mid(grid.bearings, field.e_mid, field.f, fused.l_mid, fused.var_l, fused.tor),
         timings=clock.laps,
         reasons=tuple(reasons),
     )
