@@ -75,6 +75,7 @@ __all__ = [
     "DenseOptions",
     "DenseOwl",
     "DenseResult",
+    "ImagePair",
     "TimeToContact",
     "dense_owl",
     "time_to_contact",
@@ -1027,6 +1028,9 @@ class DenseOwl:
     ) -> DenseResult | None:
         """Dense OWL between the image of ``previous_stamp_ns`` and this one; keeps this one.
 
+        ``take`` then ``measure``: the two halves can run in different threads (the
+        first keeps the images, the second owns the flow instance).
+
         Args:
             image: (H, W) uint8 input image of the camera's size.
             stamp_ns: its stamp, ns.
@@ -1043,6 +1047,19 @@ class DenseOwl:
         Raises:
             InvalidInputError: wrong image shape or dtype, malformed rotation or heading.
         """
+        pair = self.take(image, stamp_ns)
+        if pair is None:
+            return None
+        return self.measure(pair, rotation, heading, heading_sigma_rad)
+
+    def take(self, image: npt.NDArray[np.uint8], stamp_ns: int) -> ImagePair | None:
+        """Keep this image (resized to the working grid); the pair to measure, or None for
+        the first image and after a stamp that did not move forward (the kept images are
+        then dropped).
+
+        Raises:
+            InvalidInputError: wrong image shape or dtype.
+        """
         t_start = time.perf_counter()
         img = np.asarray(image)
         cam = self.camera
@@ -1053,7 +1070,6 @@ class DenseOwl:
             )
         opts = self.options
         cur = _resize(img, opts.width, opts.height)
-        t_resize = time.perf_counter() - t_start
         stamp = int(stamp_ns)
         if self._ring and stamp <= self._ring[-1][0]:
             self._ring = []
@@ -1064,6 +1080,21 @@ class DenseOwl:
         self._ring = [*self._ring, (stamp, cur)][-opts.baseline_frames :]
         if prev is None or prev_stamp is None:
             return None
+        return ImagePair(prev_stamp, prev, stamp, cur, time.perf_counter() - t_start)
+
+    def measure(
+        self,
+        pair: ImagePair,
+        rotation: npt.ArrayLike | None,
+        heading: npt.ArrayLike | None,
+        heading_sigma_rad: float = 0.0,
+    ) -> DenseResult:
+        """Dense OWL of an image pair from :meth:`take` (see :meth:`process`).
+
+        Raises:
+            InvalidInputError: malformed rotation or heading.
+        """
+        t_start = time.perf_counter()
         rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
         if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):
             raise InvalidInputError(f"rotation must be a finite (3, 3) matrix, got {rot!r}")
@@ -1076,8 +1107,25 @@ class DenseOwl:
         sigma = float(heading_sigma_rad)
         if not math.isfinite(sigma):
             sigma = 0.1
-        dt = (stamp - prev_stamp) * 1e-9
-        result = dense_owl(self._setup, prev, cur, dt, rot, hv, sigma, stamp)
-        result.timings["resize"] = t_resize
-        result.timings["total"] = time.perf_counter() - t_start
+        dt = (pair.stamp_ns - pair.prev_stamp_ns) * 1e-9
+        result = dense_owl(self._setup, pair.prev, pair.cur, dt, rot, hv, sigma, pair.stamp_ns)
+        result.timings["resize"] = pair.resize_s
+        result.timings["total"] = time.perf_counter() - t_start + pair.resize_s
         return result
+
+
+@dataclass(frozen=True)
+class ImagePair:
+    """Two working images the dense stage measures the flow between.
+
+    Attributes:
+        prev_stamp_ns, stamp_ns: their stamps, ns (``prev_stamp_ns < stamp_ns``).
+        prev, cur: (h, w) uint8 working images.
+        resize_s: wall time the resize of ``cur`` took, s.
+    """
+
+    prev_stamp_ns: int
+    prev: npt.NDArray[np.uint8]
+    stamp_ns: int
+    cur: npt.NDArray[np.uint8]
+    resize_s: float
