@@ -20,9 +20,10 @@ with the input image's header. ``owl/time_to_contact``: ``point`` is the unit be
 the pixel with the shortest time to contact inside the path cone multiplied by that time
 in seconds, so ``|point|`` is the time to contact and ``point/|point|`` where it is (the
 same direction in the camera optical frame); NaN x y z when nothing inside the cone
-approaches with a precise window-averaged L. A PointStamped was chosen because it is the smallest stamped message that
-carries both what a planner acts on and where it lies (sensor_msgs/Range has no
-direction: its cone is the frame's x axis), and RViz draws it as is.
+approaches with a precise window-averaged L. A PointStamped was chosen because it is the
+smallest stamped message that carries both what a planner acts on and where it lies
+(sensor_msgs/Range has no direction: its cone is the frame's x axis), and RViz draws it
+as is.
 """
 
 from __future__ import annotations
