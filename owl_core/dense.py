@@ -381,6 +381,9 @@ class _Grid:
         self.yc: F32 = ys - np.float32(0.5 * (height - 1))
         self.width = width
         self.height = height
+        for value in vars(self).values():  # shared by every DenseOwl of this camera (cached)
+            if isinstance(value, np.ndarray):
+                value.setflags(write=False)
 
 
 @lru_cache(maxsize=4)
