@@ -19,15 +19,17 @@ Images are on the working grid (``dense_width`` x ``dense_height``) of the input
 with the input image's header. ``owl/time_to_contact``: ``point`` is the unit bearing of
 the pixel with the shortest time to contact inside the path cone multiplied by that time
 in seconds, so ``|point|`` is the time to contact and ``point/|point|`` where it is (the
-same direction in the camera optical frame); NaN x y z when nothing confident approaches
-inside the cone. A PointStamped was chosen because it is the smallest stamped message that
-carries both what a planner acts on and where it lies (sensor_msgs/Range has no
-direction: its cone is the frame's x axis), and RViz draws it as is.
+same direction in the camera optical frame); NaN x y z when nothing inside the cone
+approaches with a precise window-averaged L. A PointStamped was chosen because it is the
+smallest stamped message that carries both what a planner acts on and where it lies
+(sensor_msgs/Range has no direction: its cone is the frame's x axis), and RViz draws it
+as is.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -39,14 +41,17 @@ from msg_adapters.diagnostics import Level, StatusRecord
 from msg_adapters.image import array_to_image
 from msg_adapters.pointcloud import array_to_cloud
 from owl_core.camera import CameraModel
-from owl_core.dense import DenseOptions, DenseOwl, DenseResult
+from owl_core.dense import DenseOptions, DenseOwl, DenseResult, ImagePair
 from owl_core.engine import OwlEngine
 from owl_core.errors import OwlError
 from owl_ros.params import NodeOptions
 
 __all__ = [
     "TOPICS",
+    "DenseJob",
+    "DensePublishers",
     "DenseStage",
+    "DenseWriter",
     "build_messages",
     "dense_options",
     "working_camera",
@@ -107,12 +112,37 @@ class _Last:
     frames: int = 0
     warned: int = 0
     gyro_missing: int = 0
+    dropped: int = 0
     # shortest time to contact since the last status: (seconds, pixel (u, v) or None)
     window_min: tuple[float, Any] | None = None
 
 
+@dataclass(frozen=True)
+class DenseJob:
+    """One frame's dense work, everything read from the engine at hand-over time.
+
+    Attributes:
+        dense: the dense stage that took the images (it owns the flow instance).
+        pair: the image pair to measure.
+        rotation: (3, 3) gyro rotation from the pair's first to its second stamp (bias
+            removed), or None without gyro coverage.
+        heading: (3,) the engine's heading at the second stamp, or None.
+        heading_sigma_rad: its 1-sigma, rad.
+    """
+
+    dense: DenseOwl
+    pair: ImagePair
+    rotation: Any
+    heading: Any
+    heading_sigma_rad: float
+
+
 class DenseStage:
     """Runs :class:`~owl_core.dense.DenseOwl` after the sparse engine, frame by frame.
+
+    :meth:`begin` (in the thread that owns the engine: it reads the gyro buffer) takes the
+    image and returns a :class:`DenseJob`; :meth:`finish` measures it, in any thread, and
+    keeps the bookkeeping of ``owl: dense`` (under a lock: the status is read elsewhere).
 
     Args:
         options: node options (the ``dense_*`` and ``ttc_*`` parameters).
@@ -123,6 +153,7 @@ class DenseStage:
         self._dense: DenseOwl | None = None
         self._work: CameraModel | None = None
         self._last = _Last()
+        self._lock = threading.Lock()
 
     @property
     def last(self) -> DenseResult | None:
@@ -139,10 +170,21 @@ class DenseStage:
         if self._dense is not None:
             self._dense.reset()
 
-    def run(
+    def record_error(self, text: str) -> None:
+        """Say in ``owl: dense`` why a frame gave no dense output."""
+        with self._lock:
+            self._last.error = text
+
+    def count_dropped(self) -> None:
+        """A job was dropped for a newer one (the dense stage fell behind)."""
+        with self._lock:
+            self._last.dropped += 1
+
+    def begin(
         self, engine: OwlEngine | None, camera: CameraModel | None, image: Any, result: Any
-    ) -> DenseResult | None:
-        """One frame: ``image`` (H, W) uint8 grey, ``result`` the engine's FrameResult."""
+    ) -> DenseJob | None:
+        """Keep one frame's image (``(H, W)`` uint8 grey; ``result`` the engine's
+        FrameResult); the job to measure, or None (first frame, no engine yet, bad image)."""
         if engine is None or camera is None:
             return None
         opts = dense_options(self.options)
@@ -150,30 +192,51 @@ class DenseStage:
             self._dense = DenseOwl(camera, opts)
             self._work = working_camera(camera, opts.width, opts.height)
         dense = self._dense
-        stamp = int(result.stamp_ns)
-        prev = dense.previous_stamp_ns
-        rotation = None
-        if prev is not None and prev < stamp:
-            if engine.gyro.covers(prev, stamp):
-                rotation = engine.gyro.relative_rotation(prev, stamp, engine.gyro_bias)
-            else:
-                self._last.gyro_missing += 1
         try:
-            out = dense.process(image, stamp, rotation, result.heading, result.heading_sigma_rad)
+            pair = dense.take(image, int(result.stamp_ns))
         except OwlError as err:
-            self._last.error = f"dense: {err}"
+            with self._lock:
+                self._last.error = f"dense: {err}"
             dense.reset()
             return None
-        self._last.frames += 1
-        self._last.result = out
-        ttc = out.ttc if out is not None else None
-        if ttc is not None and math.isfinite(ttc.seconds):
-            best = self._last.window_min
-            if best is None or ttc.seconds < best[0]:
-                self._last.window_min = (ttc.seconds, ttc.pixel)
-            if self._warning(ttc.seconds, ttc.pixel) is not None:
-                self._last.warned += 1
+        if pair is None:
+            return None
+        rotation = None
+        if engine.gyro.covers(pair.prev_stamp_ns, pair.stamp_ns):
+            bias = engine.gyro_bias
+            rotation = engine.gyro.relative_rotation(pair.prev_stamp_ns, pair.stamp_ns, bias)
+        else:
+            with self._lock:
+                self._last.gyro_missing += 1
+        return DenseJob(dense, pair, rotation, result.heading, result.heading_sigma_rad)
+
+    def finish(self, job: DenseJob) -> DenseResult | None:
+        """Measure a job and keep its result for ``owl: dense``; None after bad input
+        (said in the status)."""
+        try:
+            out = job.dense.measure(job.pair, job.rotation, job.heading, job.heading_sigma_rad)
+        except OwlError as err:
+            with self._lock:
+                self._last.error = f"dense: {err}"
+            return None
+        with self._lock:
+            self._last.frames += 1
+            self._last.result = out
+            ttc = out.ttc
+            if ttc is not None and math.isfinite(ttc.seconds):
+                best = self._last.window_min
+                if best is None or ttc.seconds < best[0]:
+                    self._last.window_min = (ttc.seconds, ttc.pixel)
+                if self._warning(ttc.seconds, ttc.pixel) is not None:
+                    self._last.warned += 1
         return out
+
+    def run(
+        self, engine: OwlEngine | None, camera: CameraModel | None, image: Any, result: Any
+    ) -> DenseResult | None:
+        """One frame in this thread: :meth:`begin` then :meth:`finish`."""
+        job = self.begin(engine, camera, image, result)
+        return None if job is None else self.finish(job)
 
     def _warning(self, seconds: float, pixel: Any) -> str | None:
         """The WARN line when a time to contact is below ``ttc_warn_s``."""
@@ -186,14 +249,16 @@ class DenseStage:
     def status(self) -> StatusRecord:
         """The ``owl: dense`` diagnostic status since the last call: WARN when the shortest
         time to contact in the path cone went below ``ttc_warn_s`` meanwhile."""
-        last = self._last
-        res = last.result
-        window_min, last.window_min = last.window_min, None
-        values: dict[str, object] = {
-            "dense_frames_total": last.frames,
-            "ttc_warnings_total": last.warned,
-            "frames_without_gyro_total": last.gyro_missing,
-        }
+        with self._lock:
+            last = self._last
+            res = last.result
+            window_min, last.window_min = last.window_min, None
+            values: dict[str, object] = {
+                "dense_frames_total": last.frames,
+                "ttc_warnings_total": last.warned,
+                "frames_without_gyro_total": last.gyro_missing,
+                "dropped_for_newer_total": last.dropped,
+            }
         if res is None:
             msg = last.error or "no dense result yet (needs two frames while subscribed)"
             return StatusRecord.build("owl: dense", Level.OK, msg, values)
@@ -280,6 +345,12 @@ def build_messages(
 class DensePublishers:
     """The node's dense publishers; builds each message only while it has a subscriber.
 
+    The dense stage runs in a thread of its own, so that on a machine with two cores it
+    measures one frame while the node's worker runs the sparse engine on the next:
+    :meth:`publish` takes the image and what the dense stage needs from the engine (in the
+    caller's thread, which owns the engine) and hands the job over; newest wins when the
+    dense thread is still busy (the dropped job is counted in ``owl: dense``).
+
     Args:
         node: the rclpy node (publishers are created on it, reliable QoS ``qos``).
         options: node options.
@@ -299,9 +370,16 @@ class DensePublishers:
         self.stage = DenseStage(options)
         self._pubs = {t: node.create_publisher(kinds[k], t, qos) for t, k in TOPICS.items()}
         self._idle = True
+        self._cond = threading.Condition()
+        self._pending: tuple[Any, ...] | None = None
+        self._busy = False
+        self._closing = False
+        self._thread = threading.Thread(target=self._loop, name="owl-dense", daemon=True)
+        self._thread.start()
 
     def publish(self, out: Any, engine: OwlEngine | None, camera: CameraModel | None) -> None:
-        """Run the dense stage on one pipeline Output and publish what is subscribed."""
+        """Hand one pipeline Output to the dense thread, which publishes what is
+        subscribed."""
         listening = {t for t, p in self._pubs.items() if p.get_subscription_count() > 0}
         if not listening:
             if not self._idle:
@@ -309,14 +387,56 @@ class DensePublishers:
             self._idle = True
             return
         self._idle = False
-        result = self.stage.run(engine, camera, out.image, out.result)
+        job = self.stage.begin(engine, camera, out.image, out.result)
         work = self.stage.camera_info_model
-        if result is None or work is None:
+        if job is None or work is None:
+            return
+        with self._cond:
+            if self._pending is not None:
+                self.stage.count_dropped()
+            self._pending = (job, work, out.header, out.speed, frozenset(listening))
+            self._cond.notify_all()
+
+    def _loop(self) -> None:
+        while True:
+            with self._cond:
+                while self._pending is None and not self._closing:
+                    self._cond.wait()
+                if self._pending is None:
+                    return
+                item, self._pending = self._pending, None
+                self._busy = True
+            try:
+                self._measure(*item)
+            except Exception as err:  # a thread boundary: say it in the status, go on
+                self.stage.record_error(f"dense thread: {type(err).__name__}: {err}")
+            finally:
+                with self._cond:
+                    self._busy = False
+                    self._cond.notify_all()
+
+    def _measure(
+        self, job: DenseJob, work: CameraModel, header: Any, speed: Any, listening: Any
+    ) -> None:
+        result = self.stage.finish(job)
+        if result is None:
             return
         stride = self.stage.options.dense_cloud_stride
-        msgs = build_messages(result, work, out.header, out.speed, stride, listening.__contains__)
+        msgs = build_messages(result, work, header, speed, stride, listening.__contains__)
         for topic, msg in msgs.items():
             self._pubs[topic].publish(msg)
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Wait until the handed-over job is published; False on timeout."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._pending is None and not self._busy, timeout_s)
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Finish the handed-over job and stop the dense thread."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify_all()
+        self._thread.join(timeout=timeout_s)
 
     @property
     def publishers(self) -> list[Any]:

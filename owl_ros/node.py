@@ -509,9 +509,12 @@ class OwlNode(Node):
         self._inbox.wake()
         if self._worker.is_alive():
             self._worker.join(timeout=5.0)
+        if self._dense is not None:
+            self._dense.close()  # its thread publishes the last handed-over frame first
         deadline = time.monotonic() + FLUSH_TIMEOUT_S
         pubs = (self._points_pub, self._heading_pub, self._bias_pub, self._debug_pub)
-        for pub in (*pubs, self._diag_pub):
+        dense = self._dense.publishers if self._dense is not None else []
+        for pub in (*pubs, *dense, self._diag_pub):
             left = deadline - time.monotonic()
             if pub is not None and left > 0 and pub.get_subscription_count() > 0:
                 if not pub.wait_for_all_acked(Duration(nanoseconds=round(left * 1e9))):

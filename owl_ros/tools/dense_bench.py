@@ -409,7 +409,9 @@ def dense_figure(sim: Any, frames: Any, path: Path, frame: int | None = None) ->
 def build_parser() -> argparse.ArgumentParser:
     p = OneLineErrorParser(prog="owl_dense_bench", description=__doc__.split("\n\n")[0])
     p.add_argument("--cases", default=",".join(STATIC), help="comma-separated scenarios")
-    p.add_argument("--presets", default="medium,fast,ultrafast", help="DIS presets to run")
+    p.add_argument(
+        "--presets", default="balanced,medium,fast,ultrafast", help="DIS presets to run"
+    )
     p.add_argument("--seconds", type=float, default=1.5, help="seconds per case (30 Hz)")
     p.add_argument("--cache-dir", default="results/cache", help="rendered-frame cache")
     p.add_argument(

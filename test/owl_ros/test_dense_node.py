@@ -78,13 +78,22 @@ def test_dense_outputs_built_only_while_subscribed(
         assert ros_pub.get_subscription_count() == 1
         for out, engine, camera in outs[half:]:
             pubs.publish(out, engine, camera)
-        want = len(outs) - half - 1  # the first frame after subscribing keeps its image only
-        while len(got) < want and time.monotonic() < deadline:
+        assert pubs.wait_idle(10.0)
+        # the first frame after subscribing keeps its image only; the dense thread measured
+        # every later one or dropped it for a newer one (newest wins), never the last
+        handed = len(outs) - half - 1
+        status = pubs.stage.status().value_map()
+        measured = int(status["dense_frames_total"])
+        assert measured + int(status["dropped_for_newer_total"]) == handed
+        while len(got) < measured and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
-        assert len(got) == want
+        assert len(got) == measured >= 1
+        last = outs[-1][0].header.stamp
+        assert (got[-1].header.stamp.sec, got[-1].header.stamp.nanosec) == (last.sec, last.nanosec)
         assert pubs.stage.last is not None
         assert image_to_array(got[-1]).shape == (60, 80)
         assert got[-1].encoding == "32FC1"
+        pubs.close()
         listener.destroy_node()
         node.destroy_node()
     finally:
