@@ -138,9 +138,10 @@ class EngineOptions:
             with its feature for its whole life (an occlusion edge, a patch that deforms
             or aliases), so it does not average out over frames as noise does.
         residual_memory_sigma: a track whose running mean residual is ``m`` enters the
-            heading fit with its flow noise multiplied by ``sqrt(1 + (m / this)^2)``,
-            dimensionless (flow-noise sigmas): a persistent error is down-weighted while
-            it lasts, and a track that recovers regains its weight.
+            heading fit with the weight ``1 / (1 + (m / this)^2)`` (its flow noise there
+            times ``sqrt(1 + (m / this)^2)``), dimensionless (flow-noise sigmas): a
+            persistent error is down-weighted while it lasts, and a track that recovers
+            regains its weight. Whether the camera translates is judged without it.
         range_filter: filter each track's r/|t| over frames: the previous frame's scaled
             point, moved on by the elapsed time (minus the heading x dt, rescaled by the
             speed change, rotated with the gyro into this frame), predicts this frame's,
@@ -532,16 +533,14 @@ class _Integrated:
 @dataclass(frozen=True)
 class _Headed:
     """Stage 3 (heading): the estimate, the unit heading at the fits' reference time and
-    now (3,), its 1-sigma (rad), the rates ``f`` (N, 3) with the leftover rotation
-    removed, and the coplanarity residuals (N,) in units of each track's flow noise
-    ``f_sigma`` (NaN where a point was not used)."""
+    now (3,), its 1-sigma (rad), and the rates ``f`` (N, 3) with the leftover rotation
+    removed."""
 
     est: hd.MotionEstimate
     heading_ref: FloatArray
     heading: FloatArray
     heading_sigma: float
     f: FloatArray
-    residuals: FloatArray
     timings: tuple[tuple[str, float], ...]
 
 
@@ -1152,18 +1151,17 @@ class OwlEngine:
         else:
             prior = opts.no_gyro_rotation_sigma**2 * np.eye(3)
         memory = self._residual_memory(integ.ids)
-        f_sigma = integ.f_sigma * np.sqrt(1.0 + (memory / opts.residual_memory_sigma) ** 2)
         est = hd.estimate_motion(
             integ.e,
             integ.f,
-            f_sigma,
+            integ.f_sigma,
             prior,
             options=opts.heading,
             rng=self._rng,
             initial_heading=self._state.last_heading,
+            fit_weights=1.0 / (1.0 + (memory / opts.residual_memory_sigma) ** 2),
         )
-        residuals = est.residuals * f_sigma / integ.f_sigma
-        self._remember_residuals(integ.ids, stamp, residuals, memory)
+        self._remember_residuals(integ.ids, stamp, est.residuals, memory)
         if integ.with_gyro and opts.estimate_bias:
             self._bias.update(
                 est.rotation_error,
@@ -1196,7 +1194,7 @@ class OwlEngine:
             heading, heading_sigma = self._heading_now(*args)
         # remove the leftover rotation found jointly with the heading
         f = integ.f + motion.cross(est.rotation_error, integ.e)
-        return _Headed(est, heading_ref, heading, heading_sigma, f, residuals, timings)
+        return _Headed(est, heading_ref, heading, heading_sigma, f, timings)
 
     def _residual_memory(self, ids: npt.NDArray[np.uint32]) -> FloatArray:
         """(N,) running mean coplanarity residual of the tracks ``ids`` (N,), in flow-noise
@@ -1235,8 +1233,9 @@ class OwlEngine:
     ) -> tuple[FloatArray, FloatArray]:
         """Per-track filter of r/|t|: the previous frame's scaled point moved on by the
         elapsed time (minus heading x dt, rotated with the gyro into this frame) predicts
-        this frame's; fused by variance with the measurement. Returns (N,) r/|t| (s) and
-        its relative 1-sigma."""
+        this frame's, up to the speed change, which is common to all points and taken as
+        the median ratio of measured to predicted r/|t|; fused by variance with the
+        measurement in inverse range. Returns (N,) r/|t| (s) and its relative 1-sigma."""
         opts = self.options
         out_r = ranges.copy()
         out_rel = rel_sigma.copy()
@@ -1253,6 +1252,11 @@ class OwlEngine:
                 )
                 pred = moved @ rot.T
                 r_pred = np.einsum("ni,ni->n", pred, integ.e_now)
+                # the speed change is common to every static point: take it from the
+                # measurements themselves (the filtered speed rate lags an acceleration)
+                both = found & usable & (r_pred > 0) & (ranges > 0)
+                if np.count_nonzero(both) >= 20:
+                    r_pred = r_pred * float(np.exp(np.median(np.log(ranges[both] / r_pred[both]))))
                 rel_pred = np.sqrt(p_rel[rows] ** 2 + opts.range_process_rel**2 * dt)
                 # fused in inverse range (the noise of |ToR| is closer to Gaussian there)
                 inv_p = 1.0 / np.where(r_pred > 0, r_pred, np.nan)
@@ -1307,7 +1311,7 @@ class OwlEngine:
         from the local rule and the heading route (movers excluded from the route)."""
         opts = self.options
         e, f_sigma, heading_ref = integ.e, integ.f_sigma, headed.heading_ref
-        res = np.nan_to_num(headed.residuals, nan=0.0)
+        res = np.nan_to_num(headed.est.residuals, nan=0.0)
         moving = np.abs(res) > opts.moving_sigma
         # A static point's omega is a positive multiple of e x heading (it lies in front of
         # the camera): a clearly negative multiple is something moving against the flow.

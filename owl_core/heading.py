@@ -389,6 +389,7 @@ def estimate_motion(
     rng: np.random.Generator | None = None,
     estimate_rotation: bool = True,
     initial_heading: npt.ArrayLike | None = None,
+    fit_weights: npt.ArrayLike | None = None,
 ) -> MotionEstimate:
     """Robust joint estimate of the heading and the leftover rotation from N flows.
 
@@ -402,12 +403,21 @@ def estimate_motion(
         rng: random generator for RANSAC (default: seeded, deterministic).
         estimate_rotation: False fixes delta = 0 (heading only, 2 unknowns).
         initial_heading: (3,) optional extra start (e.g. the previous frame's heading).
+        fit_weights: (N,) optional weights in (0, 1] of the points in the heading fit (its
+            RANSAC score and Gauss-Newton: a point's noise there is ``flow_sigma /
+            sqrt(weight)``), e.g. lower for a track whose error persists. The tests whether
+            the camera translates, the residuals and the inlier flags use ``flow_sigma``.
 
     Returns:
         :class:`MotionEstimate`.
     """
     opts = options or HeadingOptions()
     e, f, sigma, prior = _check_motion_inputs(bearings, derotated, flow_sigma, rotation_prior_cov)
+    weights = np.ones(e.shape[0])
+    if fit_weights is not None:
+        weights = np.broadcast_to(np.asarray(fit_weights, dtype=np.float64), (e.shape[0],))
+        if not np.all((weights > 0) & (weights <= 1)):
+            raise InvalidInputError("fit_weights must lie in (0, 1]")
     n = e.shape[0]
     rng = rng or np.random.default_rng(0)
     usable = np.all(np.isfinite(e), axis=1) & np.all(np.isfinite(f), axis=1)
@@ -420,13 +430,13 @@ def estimate_motion(
             None, np.inf, zero3, prior.copy(), False, none_inliers, residuals,
             f"too few points with flow for a heading: {int(usable.sum())} < {opts.min_points}",
         )  # fmt: skip
-    eu, fu, su = e[usable], f[usable], sigma[usable]
+    eu, fu, su, wu = e[usable], f[usable], sigma[usable], weights[usable]
     # the estimate runs on an even subsample; residuals and flags cover every usable point
     if eu.shape[0] > opts.max_points:
         sub = np.linspace(0, eu.shape[0] - 1, opts.max_points).astype(np.int64)
-        es, fs, ss = eu[sub], fu[sub], su[sub]
+        es, fs, ss, ws = eu[sub], fu[sub], su[sub], wu[sub]
     else:
-        es, fs, ss = eu, fu, su
+        es, fs, ss, ws = eu, fu, su, wu
     prior_inv: FloatArray = (
         np.asarray(np.linalg.inv(prior + 1e-18 * np.eye(3)), dtype=np.float64)
         if estimate_rotation
@@ -457,9 +467,10 @@ def estimate_motion(
 
     # 2. RANSAC on the heading with delta = 0: h = n_a x n_b for two random points.
     nvec = cross(es, fs)
-    starts = _heading_starts(es, fs, ss, nvec, prior, opts, rng, initial_heading)
+    sw = ss / np.sqrt(ws)  # the fit's noise per point (fit_weights)
+    starts = _heading_starts(es, fs, sw, nvec, prior, opts, rng, initial_heading)
     # 3. Gauss-Newton with Cauchy weights on (h, delta), prior on delta, from each start.
-    h, delta, cov = _refine_best(starts, es, fs, ss, nvec, prior_inv, opts, estimate_rotation)
+    h, delta, cov = _refine_best(starts, es, fs, sw, nvec, prior_inv, opts, estimate_rotation)
     h, res, inl_u = _final_inliers(h, delta, eu, fu, su, opts)
     residuals[usable] = res
     inliers = np.zeros(n, dtype=bool)

@@ -330,14 +330,14 @@ def test_range_filter_fuses_the_moved_previous_point_with_the_measurement(
     ids = np.array([4, 5, 6], dtype=np.uint32)
     dt, rot = 0.05, so3_exp(np.array([0.0, 0.02, 0.0]))
     stamps = np.array([int(dt * 1e9), 0], dtype=np.int64)
-    headed = eng._Headed(None, h, h, 0.0, np.zeros((3, 3)), np.zeros(3), ())  # type: ignore[arg-type]
+    headed = eng._Headed(None, h, h, 0.0, np.zeros((3, 3)), ())  # type: ignore[arg-type]
     first = _range_frame(pts0, ids, np.array([0, -1], dtype=np.int64), np.eye(3))
     r0 = np.linalg.norm(pts0, axis=1)
     out, rel = e._filter_ranges(first, headed, 0, r0, np.full(3, 0.02), np.ones(3, bool))
     np.testing.assert_allclose(out, r0)  # nothing to fuse yet
     pts1 = (pts0 - h * dt) @ rot.T  # the truth now (h is a direction fixed in the scene)
     h1 = rot @ h
-    headed1 = eng._Headed(None, h1, h1, 0.0, np.zeros((3, 3)), np.zeros(3), ())  # type: ignore[arg-type]
+    headed1 = eng._Headed(None, h1, h1, 0.0, np.zeros((3, 3)), ())  # type: ignore[arg-type]
     second = _range_frame(pts1, ids, stamps, rot)
     r1 = np.linalg.norm(pts1, axis=1)
     d = np.array([0.03, -0.03, 0.5])  # the last one is 25 sigma off: restarted
