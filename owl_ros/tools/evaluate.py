@@ -257,6 +257,43 @@ def true_range_over_speed(
     return np.where(np.isfinite(r) & (r > 0), r / speed, np.nan)
 
 
+def paired_range_errors(
+    ids_a: npt.ArrayLike,
+    pixels_a: npt.ArrayLike,
+    range_a: npt.ArrayLike,
+    ids_b: npt.ArrayLike,
+    range_b: npt.ArrayLike,
+    truth: Truth,
+) -> tuple[FloatArray, FloatArray]:
+    """Relative r/|t| errors of two estimators on the same tracks: the track ids both gave
+    a finite r/|t| for, static and away from a moving object's outline (as
+    :func:`score_frame` scores them), each error against the truth at A's pixel.
+
+    Args:
+        ids_a, pixels_a, range_a: (N,) track ids, (N, 2) pixels and (N,) r/|t| (s) of A.
+        ids_b, range_b: (M,) track ids and (M,) r/|t| (s) of B.
+        truth: the frame's truth.
+
+    Returns:
+        ((K,), (K,)) absolute relative errors of A and of B on the K common points.
+    """
+    speed = float(np.linalg.norm(truth.velocity))
+    common, ia, ib = np.intersect1d(
+        np.asarray(ids_a), np.asarray(ids_b), assume_unique=True, return_indices=True
+    )
+    if common.size == 0 or speed < MIN_SPEED:
+        return np.zeros(0), np.zeros(0)
+    px = np.asarray(pixels_a, dtype=np.float64).reshape(-1, 2)[ia]
+    ra = np.asarray(range_a, dtype=np.float64)[ia]
+    rb = np.asarray(range_b, dtype=np.float64)[ib]
+    true = true_range_over_speed(px, truth.range_m, speed)
+    ok = np.isfinite(true) & np.isfinite(ra) & np.isfinite(rb)
+    if truth.mask is not None:
+        ok &= ~(sample_nearest(truth.mask.astype(np.float64), px) > 0.5)
+        ok &= ~(sample_nearest(mask_edge_distance(truth.mask), px) <= MASK_MARGIN_PX)
+    return np.abs(relative_error(ra[ok], true[ok])), np.abs(relative_error(rb[ok], true[ok]))
+
+
 def relative_error(estimated: npt.ArrayLike, true: npt.ArrayLike) -> FloatArray:
     """Signed relative error ``(est - true) / true`` (NaN where either is not finite)."""
     e = np.asarray(estimated, dtype=np.float64)

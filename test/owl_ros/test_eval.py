@@ -267,3 +267,26 @@ def test_run_without_imu_has_no_bias_error(truth_bag, tmp_path):
     out = evaluate.evaluate(tmp_path / "owl", path)
     assert out.summary["bias_error_final_rad_s"] is None
     assert "result had no IMU samples: gyro-bias error not scored" in out.notes
+
+
+def test_paired_range_errors_score_two_estimators_on_their_common_tracks(truth_bag):
+    """A gives ranges 10 % long on tracks 0..9, B 20 % short on tracks 5..14: only tracks
+    5..9 are scored, A's error 0.1 and B's 0.2 on each; a point on the car or within
+    MASK_MARGIN_PX of its outline is left out."""
+    _, _, frames = truth_bag
+    f = frames[5]
+    truth = evaluate.Truth(f.stamp_ns, f.velocity, f.range_m, f.mask)
+    speed = float(np.linalg.norm(f.velocity))
+    far = np.argwhere(evaluate.mask_edge_distance(f.mask) > 20)[:, ::-1].astype(float)
+    px = far[np.linspace(0, far.shape[0] - 1, 15).astype(int)]
+    px = px[np.isfinite(evaluate.true_range_over_speed(px, f.range_m, speed))][:15]
+    car = np.argwhere(f.mask)[:, ::-1].astype(float)[:1]
+    px[9] = car[0]  # track 9 sits on the car
+    true = evaluate.true_range_over_speed(px, f.range_m, speed)
+    ids = np.arange(px.shape[0], dtype=np.uint32)
+    a, b = evaluate.paired_range_errors(
+        ids[:10], px[:10], true[:10] * 1.1, ids[5:], np.nan_to_num(true[5:]) * 0.8, truth
+    )
+    np.testing.assert_allclose(a, 0.1, rtol=1e-6)
+    np.testing.assert_allclose(b, 0.2, rtol=1e-6)
+    assert a.size == 4  # tracks 5, 6, 7, 8 (9 is on the car)
