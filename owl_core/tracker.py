@@ -87,8 +87,8 @@ class TrackerOptions:
             onto a wrong, round-trip-consistent match where the translational flow is
             large (owl_bench: r/|t| p90 up to +23 % with 0 levels); with
             ``lk_predict_velocity`` as well, 0 levels cost about a third less LK time and
-            keep r/|t| within 3.4 %, but move two of six cases' heading medians by +5.6 %
-            and +17 %, so it is not the default.
+            keep r/|t| within 3.9 %, but over the 22 bench cases 11 of 42 heading medians
+            and p90s rise by more than 5 % (up to 25 %), so it is not the default.
         lk_predict_velocity: add to the gyro prediction each track's translational
             displacement of the previous frame (its flow minus the rotational part the
             gyro predicted then, scaled by the ratio of the frame intervals), so LK starts

@@ -439,7 +439,7 @@ PARAMS: tuple[Param, ...] = (
         _T.lk_predict_velocity,
         "start Lucas-Kanade at the gyro prediction plus each track's last translational "
         "displacement (with tracker_lk_predicted_levels 0: about a third less LK time, "
-        "heading medians up to 17 % worse on some bench cases)",
+        "heading medians and p90s up to 25 % worse on some bench cases)",
         engine="tracker.lk_predict_velocity",
     ),
     # ---- dense stage (owl_core.dense; node settings) ---------------------------------------
