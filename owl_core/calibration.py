@@ -303,6 +303,61 @@ def rotation_from_bearings(
     return rot, inl, rms
 
 
+#: cv2.recoverPose's default distance threshold: points triangulated farther than this many
+#: baselines count as at infinity (their depth sign is unreliable).
+_POSE_DISTANCE = 50.0
+
+
+def _recover_pose(
+    e_mat: FloatArray, p0: FloatArray, p1: FloatArray, mask: npt.NDArray[np.bool_]
+) -> tuple[int, FloatArray, FloatArray, npt.NDArray[np.bool_]]:
+    """``cv2.recoverPose``'s cheirality check, vectorised: of the four poses of the
+    essential matrix ``e_mat`` (3, 3) (R1 or R2, +t or -t), the one that puts the most of
+    the ``mask`` (N,) points in front of both cameras and nearer than 50 baselines.
+
+    Each point is triangulated as ``cv2.triangulatePoints`` does (the DLT rows of both
+    views from ``p0``, ``p1`` (N, 2) normalised coordinates, the right singular vector of
+    the smallest singular value), in one batched numpy SVD per rotation (the poses with
+    +t and -t share it) instead of one OpenCV call per pose (about 9 ms for 120 points in
+    OpenCV 4.13, an eighth of that here). Returns (points passing, R (3, 3), unit t (3,),
+    their mask (N,)); of equal counts the earlier pose wins, in OpenCV's order.
+    """
+    r1, r2, t = (np.asarray(a, dtype=np.float64) for a in cv2.decomposeEssentialMat(e_mat))
+    t = t.reshape(3)
+    x0, y0 = p0[:, 0], p0[:, 1]
+    x1, y1 = p1[:, :1], p1[:, 1:2]
+    zero, one = np.zeros_like(x0), np.ones_like(x0)
+    found: list[tuple[int, FloatArray, FloatArray, npt.NDArray[np.bool_]]] = []
+    for rot in (r1, r2):
+        pose = np.concatenate([rot, t[:, None]], axis=1)  # (3, 4)
+        # DLT rows (N, 4, 4): x P[2] - P[0], y P[2] - P[1] for P0 = [I | 0] and P1 = pose
+        rows = np.stack(
+            [
+                np.stack([-one, zero, x0, zero], axis=1),
+                np.stack([zero, -one, y0, zero], axis=1),
+                x1 * pose[2] - pose[0],
+                y1 * pose[2] - pose[1],
+            ],
+            axis=1,
+        )
+        # the homogeneous solution: the right singular vector of the smallest value
+        q = np.linalg.svd(rows)[2][:, 3]  # (N, 4)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            point = q[:, :3] / q[:, 3:]
+        depth_sign = q[:, 2] * q[:, 3]
+        d0 = point[:, 2]
+        d1 = point @ rot[2] + t[2]
+        # with -t the rows' last column changes sign, so the solution's homogeneous
+        # coordinate does: the point and both depths change sign
+        for sign in (1.0, -1.0):
+            a, b = sign * d0, sign * d1
+            front = sign * depth_sign > 0
+            good = mask & front & (a < _POSE_DISTANCE) & (b > 0) & (b < _POSE_DISTANCE)
+            found.append((int(np.count_nonzero(good)), rot, sign * t, good))
+    found = [found[0], found[2], found[1], found[3]]  # OpenCV's order: R1 t, R2 t, R1 -t, ...
+    return max(found, key=lambda item: item[0])  # the first of equal counts
+
+
 def _essential_rotation(
     e0: FloatArray, e1: FloatArray, threshold_rad: float
 ) -> tuple[FloatArray, npt.NDArray[np.bool_], float] | None:
@@ -318,11 +373,11 @@ def _essential_rotation(
     )
     if e_mat is None or e_mat.shape != (3, 3):
         return None
-    count, rot, t, mask2 = cv2.recoverPose(e_mat, p0, p1, mask=mask.copy())
+    count, rot, tv, inl_f = _recover_pose(
+        np.asarray(e_mat, dtype=np.float64), p0, p1, mask.reshape(-1) > 0
+    )
     if count < 8:
         return None
-    inl_f = mask2.reshape(-1) > 0
-    tv = t.reshape(3)
     n = np.cross(tv[None, :], e0[front] @ rot.T)  # epipolar-plane normals
     nn = np.linalg.norm(n, axis=1)
     ang = np.abs(np.einsum("ni,ni->n", n, e1[front])) / np.maximum(nn, 1e-12)

@@ -196,6 +196,38 @@ def tangent_basis(bearings: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
     return u1, u2
 
 
+def _chart_components(
+    bearings: FloatArray,
+    derotated: FloatArray,
+    neighbour_bearings: FloatArray,
+    neighbour_derotated: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`gnomonic_chart` per chart axis: d1, d2, v1, v2 (N, k) (offsets and relative
+    velocities) and fa, fb (N,) (the centre's chart velocity), as separate arrays.
+
+    Every product is written out over the (N, k) component arrays (a batched matmul of
+    (k, 3) by (3, 2) blocks costs several times more for these small blocks).
+    """
+    u1, u2 = tangent_basis(bearings)
+    nb = np.moveaxis(neighbour_bearings, -1, 0)  # (3, N, k) views, no copy
+    nf = np.moveaxis(neighbour_derotated, -1, 0)
+
+    def dot(v: FloatArray, u: FloatArray) -> FloatArray:
+        out: FloatArray = v[0] * u[:, 0:1] + v[1] * u[:, 1:2] + v[2] * u[:, 2:3]
+        return out
+
+    # (the bearing itself is orthogonal to the basis, so b/(b.e) - e projects as b/(b.e))
+    cos = dot(nb, bearings)
+    inv = 1.0 / np.where(cos > 1e-6, cos, np.nan)
+    p1, p2 = dot(nb, u1), dot(nb, u2)
+    fa = np.einsum("nc,nc->n", derotated, u1)
+    fb = np.einsum("nc,nc->n", derotated, u2)
+    scale = dot(nf, bearings) * inv * inv
+    v1 = dot(nf, u1) * inv - p1 * scale - fa[:, None]
+    v2 = dot(nf, u2) * inv - p2 * scale - fb[:, None]
+    return p1 * inv, p2 * inv, v1, v2, fa, fb
+
+
 def gnomonic_chart(
     bearings: FloatArray,
     derotated: FloatArray,
@@ -206,6 +238,7 @@ def gnomonic_chart(
 
     The chart maps a bearing b to ``b/(b.e) - e`` on the tangent plane at e; its time
     derivative for a point moving with ``db/dt = f_b`` is ``f_b/(b.e) - b (f_b.e)/(b.e)^2``.
+    The chart axes are :func:`tangent_basis` (u1, u2).
 
     Args:
         bearings: (N, 3) unit bearings e (chart centres).
@@ -214,24 +247,16 @@ def gnomonic_chart(
         neighbour_derotated: (N, k, 3) derotated rates of the neighbours, 1/s.
 
     Returns:
-        d: (N, k, 2) chart offsets (tan of the angle, dimensionless);
+        d: (N, k, 2) chart offsets (tan of the angle, dimensionless), NaN for a neighbour
+        90 degrees or more away;
         dv: (N, k, 2) chart velocity of each neighbour minus that of the centre, 1/s;
         f2: (N, 2) chart velocity of the centre (= f in the tangent basis), 1/s.
     """
-    u1, u2 = tangent_basis(bearings)
-    # basis (N, 3, 2) with columns u1, u2: a batched matmul projects onto the tangent plane
-    basis = np.stack([u1, u2], axis=2)
-    nb, nf = neighbour_bearings, neighbour_derotated
-    # (the bearing itself is orthogonal to the basis, so b/(b.e) - e projects as b/(b.e))
-    cos = (nb @ bearings[:, :, None])[..., 0]
-    safe = np.where(cos > 1e-6, cos, np.nan)
-    inv = 1.0 / safe
-    fe = (nf @ bearings[:, :, None])[..., 0]
-    d = (nb @ basis) * inv[..., None]
-    f2 = (derotated[:, None, :] @ basis)[:, 0, :]
-    vel = (nf @ basis) * inv[..., None] - (nb @ basis) * (fe * inv * inv)[..., None]
-    dv = vel - f2[:, None, :]
-    return d, dv, f2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d1, d2, v1, v2, fa, fb = _chart_components(
+            bearings, derotated, neighbour_bearings, neighbour_derotated
+        )
+    return np.stack([d1, d2], axis=-1), np.stack([v1, v2], axis=-1), np.stack([fa, fb], axis=-1)
 
 
 @dataclass(frozen=True)
@@ -257,12 +282,6 @@ class LocalFit:
     quality: FloatArray
     num_used: npt.NDArray[np.int64]
     valid: BoolArray
-
-
-# Entry (i, j) of the local rule's normal matrix in the (N, 16) layout taken from the
-# extended sums of fit_local_looming: 0 dd, 1 d1 fd, 2 d2 fd, 6 -d1 fxd, 7 -d2 fxd,
-# 12..14 |f|^2 (d1 d1, d1 d2, d2 d2), 15 zero (L and c do not couple).
-_NORMAL_INDEX = np.array([0, 1, 2, 15, 1, 12, 13, 6, 2, 13, 14, 7, 15, 6, 7, 0])
 
 
 def _check_neighbours(
@@ -298,57 +317,28 @@ def _check_neighbours(
     return nb, nf, mask
 
 
-def _chart_products(d: FloatArray, dv: FloatArray, f2: FloatArray) -> FloatArray:
-    """(N, 12, k) per-neighbour products whose weighted sums are the local rule's normal
-    equations, from chart offsets d (N, k, 2), relative velocities dv (N, k, 2) and the
-    feature's chart rate f2 (N, 2)."""
-    d1, d2 = d[..., 0], d[..., 1]
-    v1, v2 = dv[..., 0], dv[..., 1]
-    fa, fb = f2[:, 0:1], f2[:, 1:2]
-    dd = d1 * d1 + d2 * d2
-    fd = fa * d1 + fb * d2  # f . d
-    fxd = fa * d2 - fb * d1  # f x d (z component)
-    products = np.stack(
-        [
-            dd,  # N00 = N33
-            d1 * fd,  # N01
-            d2 * fd,  # N02
-            d1 * d1,  # N11 / |f|^2
-            d1 * d2,  # N12 / |f|^2
-            d2 * d2,  # N22 / |f|^2
-            -d1 * fxd,  # N13
-            -d2 * fxd,  # N23
-            d1 * v1 + d2 * v2,  # b0
-            d1 * (fa * v1 + fb * v2),  # b1
-            d2 * (fa * v1 + fb * v2),  # b2
-            d1 * v2 - d2 * v1,  # b3
-        ],
-        axis=1,
-    )  # (N, 12, k)
-    return products
-
-
 def _local_fit_result(
     x: FloatArray,
     inv00: FloatArray,
     weights: FloatArray,
     resid: FloatArray,
     good: npt.NDArray[np.bool_],
-    normal: FloatArray,
+    normal00: FloatArray,
     radius: FloatArray,
     noise: float,
     min_neighbours: int,
     max_l_sigma: float,
 ) -> LocalFit:
     """The :class:`LocalFit` from the last IRLS solve: x (N, 4) = (L, g1, g2, c), the
-    (0, 0) element of the inverse normal matrix (N,), weights and residuals (N, k)."""
+    (0, 0) element of the inverse normal matrix (N,), weights and residuals (N, k), the
+    (0, 0) element of the normal matrix (N,)."""
     wsum = np.sum(weights, axis=1)
     used = np.sum(weights > 0.5, axis=1)
     dof = np.maximum(2.0 * wsum - 4.0, 1.0)
     rms = np.sqrt(np.sum(weights * resid**2, axis=1) / dof)
     sigma2 = np.maximum(rms, noise) ** 2
     # L and c are observable from the offsets alone (their normal block is sum |d|^2 I).
-    valid = good & (used >= min_neighbours) & (normal[:, 0, 0] > 0)
+    valid = good & (used >= min_neighbours) & (normal00 > 0)
     valid &= np.all(np.isfinite(x), axis=1) & np.isfinite(inv00)
     cov00 = np.where(valid, inv00, 1.0) / radius**2
     variance = np.where(valid, sigma2 * cov00, np.inf)
@@ -374,13 +364,55 @@ def _cauchy_weights(
     return np.asarray(mask / (1.0 + u * u), dtype=np.float64)
 
 
-def _slant_ridge(noise: float, slant_prior: float, radius: FloatArray) -> FloatArray:
-    """(N, 4, 4) ridge of the slant prior on the (g1, g2) block of the normal equations."""
-    ridge_g = np.maximum(noise**2 / (slant_prior**2 * radius**2), 1e-14)
-    ridge = np.zeros((radius.shape[0], 4, 4))
-    ridge[:, 1, 1] = ridge_g
-    ridge[:, 2, 2] = ridge_g
-    return ridge
+def _normal_system(
+    d1: FloatArray,
+    d2: FloatArray,
+    v1: FloatArray,
+    v2: FloatArray,
+    fa: FloatArray,
+    fb: FloatArray,
+    weights: FloatArray,
+) -> tuple[list[FloatArray], list[FloatArray]]:
+    """The local rule's weighted normal equations per feature, as (N,) arrays: the lower
+    triangle (a00, a10, a11, a20, a21, a22, a30, a31, a32, a33) of the symmetric 4x4
+    matrix for x = (L, g1, g2, c) (no slant prior yet) and the right-hand side b0..b3.
+
+    From chart offsets d1, d2, relative velocities v1, v2 and weights (all (N, k)) and the
+    feature's chart rate fa, fb (N,). Per neighbour the two rows are
+    ``dv_a = L d_a + f_a (g . d) + c rot90(d)_a`` (a = 1, 2), so every entry is a
+    combination of the seven weighted sums ``S_ij = sum w d_i d_j`` and
+    ``T_ij = sum w d_i v_j``.
+    """
+
+    def wsum(a: FloatArray, b: FloatArray) -> FloatArray:
+        out: FloatArray = np.einsum("nk,nk->n", a, b)
+        return out
+
+    w1, w2 = weights * d1, weights * d2
+    s11, s12, s22 = wsum(w1, d1), wsum(w1, d2), wsum(w2, d2)
+    t11, t12, t21, t22 = wsum(w1, v1), wsum(w1, v2), wsum(w2, v1), wsum(w2, v2)
+    ff = fa * fa + fb * fb
+    dd = s11 + s22
+    zero = np.zeros_like(dd)
+    lower = [
+        dd,  # L, L
+        fa * s11 + fb * s12,  # g1, L: sum d1 (f.d)
+        ff * s11,  # g1, g1: |f|^2 sum d1 d1
+        fa * s12 + fb * s22,  # g2, L
+        ff * s12,  # g2, g1
+        ff * s22,  # g2, g2
+        zero,  # c, L: L and c do not couple
+        fb * s11 - fa * s12,  # c, g1: -sum d1 (f x d)
+        fb * s12 - fa * s22,  # c, g2
+        dd,  # c, c
+    ]
+    rhs = [
+        t11 + t22,  # sum d.dv
+        fa * t11 + fb * t12,  # sum d1 (f.dv)
+        fa * t21 + fb * t22,  # sum d2 (f.dv)
+        t12 - t21,  # sum d x dv
+    ]
+    return lower, rhs
 
 
 def fit_local_looming(
@@ -399,8 +431,9 @@ def fit_local_looming(
 ) -> LocalFit:
     """Fit ``dv = L d + f (g.d) + c rot90(d)`` per feature (owl-math.md rules 2-4).
 
-    Batched over features: the normal equations of all N features are built as (N, 4, 4)
-    arrays and solved at once. Cauchy weights ``1/(1 + (res/(robust_scale * s))^2)``, with
+    Batched over features: the normal equations of all N features are built from seven
+    weighted sums per feature (:func:`_normal_system`) and solved at once by a written-out
+    Cholesky factorisation. Cauchy weights ``1/(1 + (res/(robust_scale * s))^2)``, with
     ``s = max(noise, robust residual scale)``, down-weight neighbours across a depth or
     motion boundary.
 
@@ -434,51 +467,39 @@ def fit_local_looming(
         noise,
         iterations,
     )
-    k = nb.shape[1]
-
-    d, dv, f2 = gnomonic_chart(e, f, nb, nf)
-    mask = mask & np.all(np.isfinite(d), axis=2) & np.all(np.isfinite(dv), axis=2)
-    d = np.where(mask[..., None], d, 0.0)
-    dv = np.where(mask[..., None], dv, 0.0)
-    # Unknowns x = (L, g1, g2, c); per neighbour two rows (chart axes a = 1, 2):
-    # dv_a = L d_a + f_a (g1 d_1 + g2 d_2) + c rot90(d)_a, rot90(d) = (-d_2, d_1).
-    # The normal equations are built from weighted sums of these (N, k) products:
-    d1, d2 = d[..., 0], d[..., 1]
-    v1, v2 = dv[..., 0], dv[..., 1]
-    fa, fb = f2[:, 0:1], f2[:, 1:2]
-    ff = (fa * fa + fb * fb)[:, 0]
-    dd = d1 * d1 + d2 * d2
-    products = _chart_products(d, dv, f2)  # (N, 12, k)
+    d1, d2, v1, v2, fa, fb = _chart_components(e, f, nb, nf)
+    mask = mask & np.isfinite(d1) & np.isfinite(d2) & np.isfinite(v1) & np.isfinite(v2)
+    d1, d2 = np.where(mask, d1, 0.0), np.where(mask, d2, 0.0)
+    v1, v2 = np.where(mask, v1, 0.0), np.where(mask, v2, 0.0)
+    count = mask.sum(axis=1)
     # Normalise by the neighbourhood size so conditioning does not depend on the radius.
-    radius = np.sqrt(np.sum(np.where(mask, dd, 0.0), axis=1) / np.maximum(mask.sum(axis=1), 1))
+    radius = np.sqrt(np.sum(d1 * d1 + d2 * d2, axis=1) / np.maximum(count, 1))
     radius = np.where(radius > 0, radius, 1.0)
-    weights = mask.astype(np.float64)
-    ridge = _slant_ridge(noise, slant_prior, radius)
-    x = np.zeros((n, 4))
-    resid = np.zeros((n, k))
-    ok = mask.sum(axis=1) >= min_neighbours
-    normal = np.zeros((n, 4, 4))
     r2 = radius**2
+    ridge = np.maximum(noise**2 / (slant_prior**2 * r2), 1e-14)  # slant prior on g1, g2
+    ok = count >= min_neighbours
+    one, zero = np.ones(n), np.zeros(n)
+    weights = mask.astype(np.float64)
+    fa2, fb2 = fa[:, None], fb[:, None]
     for it in range(iterations + 1):
-        sums = (products @ weights[:, :, None])[..., 0] / r2[:, None]
-        # (N, 14): the 12 sums, then N11..N22 (x |f|^2) and a zero; gathered into (N, 4, 4)
-        ext = np.concatenate([sums, ff[:, None] * sums[:, 3:6], np.zeros((n, 1))], axis=1)
-        normal = ext[:, _NORMAL_INDEX].reshape(n, 4, 4)
-        rhs = sums[:, 8:12]
-        good = ok & np.all(np.isfinite(normal), axis=(1, 2))
-        safe_normal = np.where(good[:, None, None], normal + ridge, np.eye(4))
-        x, inv00 = _solve_spd4(safe_normal, rhs)
+        lower, rhs = _normal_system(d1, d2, v1, v2, fa, fb, weights)
+        lower = [a / r2 for a in lower]
+        good = ok & np.all(np.isfinite(lower), axis=0)
+        # the identity for features without a usable system (their x is discarded)
+        a = [np.where(good, v, one if j in (0, 2, 5, 9) else zero) for j, v in enumerate(lower)]
+        a[2] = np.where(good, lower[2] + ridge, one)
+        a[5] = np.where(good, lower[5] + ridge, one)
+        x, inv00 = _solve_spd4_lower(a, [b / r2 for b in rhs])
         lo, g1, g2, c = (x[:, j : j + 1] for j in range(4))
         slope = g1 * d1 + g2 * d2
-        r_1 = v1 - (lo * d1 + fa * slope - c * d2)
-        r_2 = v2 - (lo * d2 + fb * slope + c * d1)
+        r_1 = v1 - (lo * d1 + fa2 * slope - c * d2)
+        r_2 = v2 - (lo * d2 + fb2 * slope + c * d1)
         resid = np.sqrt(r_1 * r_1 + r_2 * r_2)
         if it == iterations:
             break
         weights = _cauchy_weights(resid, mask, noise, robust_scale)
-
     return _local_fit_result(
-        x, inv00, weights, resid, good, normal, radius, noise, min_neighbours, max_l_sigma
+        x, inv00, weights, resid, good, lower[0], radius, noise, min_neighbours, max_l_sigma
     )
 
 
@@ -496,24 +517,32 @@ def _solve_spd4(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:
         x: (N, 4) float64 solutions of ``a x = b``; NaN rows where ``a`` is not
         positive definite. inv00: (N,) float64 ``inv(a)[0, 0]`` (NaN likewise).
     """
+    lower = [a[:, i, j] for i in range(4) for j in range(i + 1)]
+    return _solve_spd4_lower(lower, [b[:, i] for i in range(4)])
+
+
+def _solve_spd4_lower(a: list[FloatArray], b: list[FloatArray]) -> tuple[FloatArray, FloatArray]:
+    """:func:`_solve_spd4` from the lower triangle row by row, a = [a00, a10, a11, a20,
+    a21, a22, a30, a31, a32, a33] and b = [b0, b1, b2, b3], each (N,)."""
 
     def root(v: FloatArray) -> FloatArray:
         out: FloatArray = np.sqrt(np.where(v > 0, v, np.nan))
         return out
 
+    a00, a10, a11, a20, a21, a22, a30, a31, a32, a33 = a
     with np.errstate(invalid="ignore", divide="ignore"):
-        l00 = root(a[:, 0, 0])
-        l10, l20, l30 = a[:, 1, 0] / l00, a[:, 2, 0] / l00, a[:, 3, 0] / l00
-        l11 = root(a[:, 1, 1] - l10 * l10)
-        l21 = (a[:, 2, 1] - l20 * l10) / l11
-        l31 = (a[:, 3, 1] - l30 * l10) / l11
-        l22 = root(a[:, 2, 2] - l20 * l20 - l21 * l21)
-        l32 = (a[:, 3, 2] - l30 * l20 - l31 * l21) / l22
-        l33 = root(a[:, 3, 3] - l30 * l30 - l31 * l31 - l32 * l32)
-        y0 = b[:, 0] / l00
-        y1 = (b[:, 1] - l10 * y0) / l11
-        y2 = (b[:, 2] - l20 * y0 - l21 * y1) / l22
-        y3 = (b[:, 3] - l30 * y0 - l31 * y1 - l32 * y2) / l33
+        l00 = root(a00)
+        l10, l20, l30 = a10 / l00, a20 / l00, a30 / l00
+        l11 = root(a11 - l10 * l10)
+        l21 = (a21 - l20 * l10) / l11
+        l31 = (a31 - l30 * l10) / l11
+        l22 = root(a22 - l20 * l20 - l21 * l21)
+        l32 = (a32 - l30 * l20 - l31 * l21) / l22
+        l33 = root(a33 - l30 * l30 - l31 * l31 - l32 * l32)
+        y0 = b[0] / l00
+        y1 = (b[1] - l10 * y0) / l11
+        y2 = (b[2] - l20 * y0 - l21 * y1) / l22
+        y3 = (b[3] - l30 * y0 - l31 * y1 - l32 * y2) / l33
         x3 = y3 / l33
         x2 = (y2 - l32 * x3) / l22
         x1 = (y1 - l21 * x2 - l31 * x3) / l11

@@ -5,7 +5,9 @@ Every frame the tracker
 1. tracks the live features from the previous image into the new one with
    pyramidal Lucas-Kanade (``cv2.calcOpticalFlowPyrLK``), starting from the
    positions given by the optional ``predict`` callable (e.g. the gyro-predicted
-   rotation; fast rotations are then tracked even beyond the pyramid's reach);
+   rotation; fast rotations are then tracked even beyond the pyramid's reach), plus,
+   with ``lk_predict_velocity``, each track's translational displacement of the last
+   frame;
 2. tracks the results back into the previous image (starting at the forward start,
    with ``lk_backward_levels`` pyramid levels: a consistent track needs no reach
    there) and drops features whose round trip misses the start by more than
@@ -81,17 +83,26 @@ class TrackerOptions:
             given (the gyro removed the rotation; what is left is the translational
             flow). Points that fail a check (LK, forward-backward, patch) are tracked
             again with ``lk_levels``. ``>= lk_levels`` (the default) tracks every point
-            with the full pyramid. 1 level saves about 7 % of the LK time at 640x480 /
-            1000 features but moves the benchmark's per-case heading errors by -20 % to
-            +29 % (a shallow pass can lock onto a wrong, round-trip-consistent match),
-            so it is not the default.
+            with the full pyramid. With the gyro's rotation alone, 0 or 1 levels can lock
+            onto a wrong, round-trip-consistent match where the translational flow is
+            large (owl_bench: r/|t| p90 up to +23 % with 0 levels); with
+            ``lk_predict_velocity`` as well, 0 levels cost about a third less LK time and
+            keep r/|t| within 3.9 %, but over the 22 bench cases 11 of 42 heading medians
+            and p90s rise by more than 5 % (up to 25 %), so it is not the default.
+        lk_predict_velocity: add to the gyro prediction each track's translational
+            displacement of the previous frame (its flow minus the rotational part the
+            gyro predicted then, scaled by the ratio of the frame intervals), so LK starts
+            near the answer and a shallow pass reaches it; tracks without a previous
+            prediction start at the gyro prediction alone.
         lk_backward_levels: pyramid levels of the backward (forward-backward check)
             pass (capped at ``lk_levels``). It starts at the forward start, where a
-            consistent track returns to within ``fb_threshold_px``, so it needs no
+            consistent track returns to within ``fb_threshold_px``, so it needs little
             reach; each level costs about as much as the full image (1000 features,
-            640x480: 3 levels ~8 ms, 1 level ~4 ms). Coarse levels only let an
-            inconsistent track wander farther: on the street scenario 1 level instead of
-            3 keeps 11 more of 43000 track steps (0.03 %), 0 levels 30 more.
+            640x480: 1 level ~7 ms, 0 levels ~3.7 ms of CPU on the loaded test machine).
+            0 levels change 33 of 89761 check decisions on the street scenario and about
+            a fifth of the LK time; over owl_bench's 21 scored cases the heading figures
+            change by -1.2 % on average and r/|t| by -0.1 % (all within +1.6 %), but four
+            heading p90s rise by 5.3 to 10 % (receding +10 %), so 1 stays the default.
         lk_max_iterations: LK iterations per level.
         lk_epsilon_px: LK stops when an update is smaller than this, pixels.
         lk_min_eigenvalue: LK rejects points whose normalised minimum eigenvalue
@@ -131,6 +142,7 @@ class TrackerOptions:
     redetect_below: float = 0.95
     max_cell_share: float = 3.0
     history_len: int = 8
+    lk_predict_velocity: bool = False
 
     def __post_init__(self) -> None:
         ints = {
@@ -250,6 +262,9 @@ class FeatureTracker:
         self._ages = np.zeros(0, dtype=np.int32)
         self._history = np.zeros((0, h, 2), dtype=np.float64)
         self._stamps = np.full(h, -1, dtype=np.int64)
+        # per track: the rotational part of the last frame's predicted displacement (NaN
+        # where there was no prediction), pixels
+        self._rot_disp = np.zeros((0, 2), dtype=np.float64)
 
     @property
     def num_tracks(self) -> int:
@@ -326,6 +341,7 @@ class FeatureTracker:
             lost_ids = np.concatenate([lost_ids, self._ids[~keep]])
             self._history[:, 0] = new_pos
             self._history = self._history[keep]
+            self._rot_disp = self._rot_disp[keep]
             self._ids = self._ids[keep]
             self._ages = self._ages[keep] + 1
 
@@ -341,6 +357,7 @@ class FeatureTracker:
             new_ids = (self._next_id + np.arange(num_detected)).astype(np.uint32)
             self._next_id += num_detected
             self._ids = np.concatenate([self._ids, new_ids])
+            self._rot_disp = np.concatenate([self._rot_disp, np.full((num_detected, 2), np.nan)])
             self._ages = np.concatenate([self._ages, np.zeros(num_detected, dtype=np.int32)])
 
         self._prev = img
@@ -389,6 +406,18 @@ class FeatureTracker:
                 )
             ok = np.all(np.isfinite(guess), axis=1)
             init[ok] = guess[ok]
+            rot_disp = np.where(ok[:, None], guess - prev, np.nan)
+            if opts.lk_predict_velocity and self._history.shape[1] > 2:
+                # the last frame's translational displacement, scaled to this interval
+                dt_now = float(self._stamps[0] - self._stamps[1])
+                dt_last = float(self._stamps[1] - self._stamps[2])
+                if self._stamps[2] >= 0 and dt_last > 0:
+                    trans = (self._history[:, 1] - self._history[:, 2]) - self._rot_disp
+                    good = ok & np.all(np.isfinite(trans), axis=1)
+                    init[good] += trans[good] * (dt_now / dt_last)
+            self._rot_disp = rot_disp
+        else:
+            self._rot_disp = np.full((m, 2), np.nan)
         p0 = prev.astype(np.float32).reshape(-1, 1, 2)
         p_init = init.astype(np.float32).reshape(-1, 1, 2)
         full = opts.lk_levels

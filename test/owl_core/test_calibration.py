@@ -10,6 +10,7 @@ import math
 from dataclasses import replace
 from itertools import pairwise
 
+import cv2
 import numpy as np
 import pytest
 
@@ -106,3 +107,29 @@ def test_bad_input_is_named() -> None:
     rot = exact_intervals(sim, 5e-5, 0)
     with pytest.raises(cal.CalibrationError, match="only 9 frame intervals"):
         cal.calibrate(rot, sim.gyro_samples())
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_recover_pose_equals_opencv(seed: int) -> None:
+    # Points from 1 to 400 baselines away (beyond the 50-baseline cut), pixel noise, 15 %
+    # outliers and a RANSAC mask: the cheirality check gives OpenCV's pose and mask exactly.
+    rng = np.random.default_rng(seed)
+    n = 150
+    rot = so3_exp(rng.normal(scale=0.05, size=3))
+    t = rng.normal(size=3)
+    t /= np.linalg.norm(t)
+    depth = np.exp(rng.uniform(0.0, np.log(400.0), n))
+    x = np.concatenate([rng.uniform(-0.5, 0.5, (n, 2)), np.ones((n, 1))], axis=1) * depth[:, None]
+    y = x @ rot.T + t
+    p0 = x[:, :2] / x[:, 2:]
+    p1 = y[:, :2] / y[:, 2:] + rng.normal(scale=1e-3, size=(n, 2))
+    p1[: n // 7] = rng.uniform(-0.5, 0.5, (n // 7, 2))
+    e_mat, mask = cv2.findEssentialMat(
+        p0, p1, focal=1.0, pp=(0.0, 0.0), method=cv2.RANSAC, prob=0.999, threshold=2e-3
+    )
+    count_cv, rot_cv, t_cv, mask_cv = cv2.recoverPose(e_mat, p0, p1, mask=mask.copy())
+    count, rot_ours, t_ours, good = cal._recover_pose(e_mat, p0, p1, mask.reshape(-1) > 0)
+    assert count == count_cv > 20
+    np.testing.assert_array_equal(rot_ours, rot_cv)
+    np.testing.assert_array_equal(t_ours, t_cv.reshape(3))
+    np.testing.assert_array_equal(good, mask_cv.reshape(-1) > 0)

@@ -164,6 +164,28 @@ def test_shallow_predicted_pass_falls_back_to_the_full_pyramid() -> None:
     assert kept["shallow only"].size < 0.5 * kept["full"].size
 
 
+def test_velocity_prediction_reaches_a_shift_one_level_cannot() -> None:
+    # Constant image velocity of 4 px per time unit; the third frame comes 3 units after
+    # the second (a dropped frame), so its step is 12 px: beyond the ~7 px reach of LK
+    # without a pyramid. The last frame's translational displacement, scaled by the
+    # interval ratio, starts LK at the answer; without it most tracks are lost.
+    v = np.array([4.0, -1.0])
+    stamps = (0, 1_000_000, 4_000_000)
+    kept = {}
+    for velocity in (True, False):
+        opts = TrackerOptions(max_features=300, lk_levels=0, lk_predict_velocity=velocity)
+        tracker = FeatureTracker(opts)
+        for stamp in stamps:
+            out = tracker.track(_shifted(v * stamp / 1e6), stamp, predict=lambda p: p)
+        old = out.ages >= 2  # tracked over both steps
+        err = np.linalg.norm(out.pixels[old] - out.history[old, 1] - 3 * v, axis=1)
+        kept[velocity] = int(np.count_nonzero(err < 0.1))
+        if velocity:
+            assert np.count_nonzero(old) > 0.8 * out.num_tracks
+            assert np.max(err) < 0.1
+    assert kept[False] < 0.5 * kept[True]
+
+
 def test_backward_pass_needs_no_pyramid_reach() -> None:
     # The backward pass starts where the forward pass started: a 16 px shift (beyond
     # the ~7 px reach of one level) passes the check with 0 backward levels, and the
