@@ -196,6 +196,27 @@ def _rotation_only(
     return delta_p, cov, res
 
 
+def _with_hidden_translation(
+    delta: FloatArray, cov: FloatArray, prior_inv: FloatArray, hidden: float
+) -> tuple[FloatArray, FloatArray]:
+    """A rotation read from a flow judged still, with the translation it may hide.
+
+    A translational flow at or below the residual's level is not detected, and the part of
+    it that looks like a rotation is absorbed into ``delta`` (a slowly translating camera
+    read as a rotating one: its bias error is systematic over all points, far above the
+    noise's share). The measurement's own covariance (the posterior ``cov`` (3, 3) less the
+    prior ``prior_inv`` (3, 3)) grows by ``hidden**2 I`` (hidden: residual flow level,
+    1/s); returns the posterior (delta (3,), cov (3, 3)) with it, rad/s.
+    """
+    info_post = np.linalg.inv(cov)
+    info_meas = info_post - prior_inv
+    meas_cov = np.linalg.inv(info_meas + 1e-30 * np.eye(3))
+    meas = meas_cov @ (info_post @ delta)
+    info_wide = np.linalg.inv(meas_cov + hidden**2 * np.eye(3))
+    post = np.asarray(np.linalg.inv(info_wide + prior_inv), dtype=np.float64)
+    return np.asarray(post @ (info_wide @ meas), dtype=np.float64), post
+
+
 def _refine(
     h0: FloatArray,
     eu: FloatArray,
@@ -451,6 +472,8 @@ def estimate_motion(
         r_all = fu - cross(eu, rot_delta)
         inl = np.zeros(n, dtype=bool)
         inl[usable] = np.sqrt(np.einsum("na,na->n", r_all, r_all)) / su < opts.inlier_sigma * 1.5
+        hidden = robust_rms * float(np.median(ss))
+        rot_delta, rot_cov = _with_hidden_translation(rot_delta, rot_cov, prior_inv, hidden)
         return MotionEstimate(
             None, np.inf, rot_delta, rot_cov, False, inl, residuals,
             "no translation: the flow is explained by a rotation alone "

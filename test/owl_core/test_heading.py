@@ -284,3 +284,19 @@ def test_adaptive_scale_rejects_wrong_tracks_inside_the_modelled_gate() -> None:
             assert est.heading is not None
             tilt[adaptive].append(angle(est.heading, H_TRUE))
     assert np.median(tilt[True]) < 0.5 * np.median(tilt[False])
+
+
+def test_still_verdict_widens_the_rotation_by_the_translation_it_may_hide() -> None:
+    """A camera translating so slowly (1/20 of the usual speed, a tracker 3x better than
+    the modelled noise) that the flow is judged still: the rotation read from it absorbs
+    part of the translation, systematically over all points, so with the fit's own
+    covariance it lies up to 20 sigmas off (chi-square up to 438). The returned covariance
+    includes a hidden translation at the residual level, so the true rotation (zero)
+    stays inside the 99.9 % ellipsoid (chi-square 3 dof: 16.3) in every trial."""
+    rng = np.random.default_rng(31)
+    for _ in range(10):
+        e, f, _, _ = scene(rng, t=T * 0.05, n=1000, noise=SIGMA / 3.0)
+        est = hd.estimate_motion(e, f, SIGMA, PRIOR)
+        assert not est.translating and est.reason.startswith("no translation")
+        d = est.rotation_error
+        assert float(d @ np.linalg.solve(est.rotation_cov, d)) < 16.3
