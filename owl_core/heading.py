@@ -535,11 +535,6 @@ class GyroBiasFilter:
         initial_sigma: 1-sigma of the initial bias, rad/s per axis.
         random_walk: bias random-walk density, rad/s/sqrt(s).
         initial_bias: (3,) initial bias, IMU frame, rad/s.
-        max_rejections: that many gate rejections in a row (:meth:`update`) reopen the
-            filter: its covariance goes back to at least the initial one, its mean is
-            kept, and the next frame updates it. A bias estimate that the flow keeps
-            contradicting is wrong (e.g. a first update from a slowly translating camera
-            taken for a rotating one), and without this it would stay wrong for good.
     """
 
     def __init__(
@@ -548,7 +543,6 @@ class GyroBiasFilter:
         initial_sigma: float = 0.02,
         random_walk: float = 1e-4,
         initial_bias: npt.ArrayLike = (0.0, 0.0, 0.0),
-        max_rejections: int = 5,
     ) -> None:
         cam_to_imu = (
             np.eye(3) if camera_to_imu is None else np.asarray(camera_to_imu, dtype=np.float64)
@@ -556,12 +550,6 @@ class GyroBiasFilter:
         if cam_to_imu.shape != (3, 3):
             raise InvalidInputError(
                 f"camera_to_imu must have shape (3, 3), got {cam_to_imu.shape}"
-            )
-        if isinstance(max_rejections, bool) or not (
-            isinstance(max_rejections, int) and max_rejections >= 1
-        ):
-            raise InvalidInputError(
-                f"max_rejections must be an integer >= 1, got {max_rejections!r}"
             )
         if not initial_sigma > 0 or not random_walk >= 0:
             raise InvalidInputError(
@@ -579,8 +567,6 @@ class GyroBiasFilter:
         self.cov = np.eye(3) * initial_sigma**2
         self.updates = 0
         self.rejected = 0
-        self.rejected_in_row = 0
-        self.max_rejections = max_rejections
 
     def reset(self) -> None:
         """Back to the initial bias and uncertainty."""
@@ -588,7 +574,6 @@ class GyroBiasFilter:
         self.cov = np.eye(3) * self._initial_sigma**2
         self.updates = 0
         self.rejected = 0
-        self.rejected_in_row = 0
 
     @property
     def bias_camera(self) -> FloatArray:
@@ -631,8 +616,7 @@ class GyroBiasFilter:
             inflation: measurement-information divisor, >= 1.
             gate: innovation gate: a posterior delta whose squared Mahalanobis distance under
                 the prior exceeds this (chi-square, 3 dof; 16.3 = 99.9 %) is rejected as an
-                outlier (e.g. translation mistaken for rotation); ``max_rejections`` in a
-                row reopen the filter. inf disables the gate.
+                outlier (e.g. translation mistaken for rotation). inf disables the gate.
             max_sigma: observability gate, rad/s: only the directions of the rotation in
                 which this one frame determines it to better than ``max_sigma`` (1-sigma,
                 before ``inflation``) update the bias; the others (e.g. a rotation the
@@ -656,14 +640,7 @@ class GyroBiasFilter:
         info_prior = np.linalg.inv(p)
         if float(d @ info_prior @ d) > gate:
             self.rejected += 1
-            self.rejected_in_row += 1
-            if self.rejected_in_row < self.max_rejections:
-                return False
-            # the state keeps contradicting the flow: reopen it (keep the mean)
-            self.cov = self.cov + np.eye(3) * self._initial_sigma**2
-            self.rejected_in_row = 0
             return False
-        self.rejected_in_row = 0
         info_meas = info_post - info_prior
         vals, vecs = np.linalg.eigh(0.5 * (info_meas + info_meas.T))
         if math.isfinite(max_sigma):
