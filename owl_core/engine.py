@@ -365,7 +365,9 @@ def _small_rotation(a: FloatArray, b: FloatArray) -> FloatArray:
 
 
 def fit_tracks(bearings: FloatArray, tau_s: FloatArray, mask: BoolArray, order: int) -> TrackFit:
-    """Weighted polynomial fit of bearing against time per track (vectorised).
+    """Weighted polynomial fit of bearing against time per track (vectorised): the global
+    shutter case of :func:`owl_core.rolling_shutter.fit_timed`, every entry of a column at
+    its frame's time.
 
     Args:
         bearings: (N, W, 3) bearings of each track, already in the current camera frame.
@@ -377,47 +379,11 @@ def fit_tracks(bearings: FloatArray, tau_s: FloatArray, mask: BoolArray, order: 
     Returns:
         :class:`TrackFit`; invalid tracks (fewer than two frames) hold NaN.
     """
-    n = bearings.shape[0]
-    m = mask.astype(np.float64)
-    b = np.where(mask[..., None], bearings, 0.0)
-    count = m.sum(axis=1)
-    out_b = np.full((n, 3), np.nan)
-    rate = np.full((n, 3), np.nan)
-    tau_ref = np.zeros(n)
-    gain = np.full(n, np.inf)
-    valid = np.zeros(n, dtype=bool)
-    # straight line about the time centroid: b = mean + v (tau - centroid)
-    s0 = np.maximum(count, 1.0)
-    centroid = (m @ tau_s) / s0
-    dt = tau_s[None, :] - centroid[:, None]
-    sxx = np.sum(m * dt * dt, axis=1)
-    line = (count >= 2) & (sxx > 1e-18)
-    safe = np.where(line, sxx, 1.0)
-    mean = np.einsum("nw,nwc->nc", m, b) / s0[:, None]
-    slope = np.einsum("nw,nwc->nc", m * dt, b) / safe[:, None]
-    out_b[line] = mean[line]
-    rate[line] = slope[line]
-    tau_ref[line] = centroid[line]
-    gain[line] = 1.0 / np.sqrt(safe[line])
-    valid |= line
-    if order == 2:
-        quad = count >= 3
-        if quad.any():
-            powers = np.stack([np.ones_like(tau_s), tau_s, tau_s**2], axis=1)  # (W, 3)
-            normal = np.einsum("nw,wi,wj->nij", m[quad], powers, powers)
-            rhs = np.einsum("nw,wi,nwc->nic", m[quad], powers, b[quad])
-            ok = np.abs(np.linalg.det(normal)) > 1e-30
-            inv = np.linalg.inv(np.where(ok[:, None, None], normal, np.eye(3)))
-            coef = inv @ rhs
-            idx = np.flatnonzero(quad)[ok]
-            out_b[idx] = coef[ok, 0]
-            rate[idx] = coef[ok, 1]
-            tau_ref[idx] = 0.0
-            gain[idx] = np.sqrt(np.maximum(inv[ok, 1, 1], 0.0))
-    norm = np.linalg.norm(out_b, axis=1, keepdims=True)
-    out_b = out_b / np.where(norm > 0, norm, 1.0)
-    rate = rate - np.einsum("nc,nc->n", rate, out_b)[:, None] * out_b
-    return TrackFit(out_b, rate, tau_ref, gain, valid)
+    tau = np.broadcast_to(np.asarray(tau_s, dtype=np.float64), mask.shape)
+    bearing, rate, tau_ref, gain, valid, _ = rs.fit_timed(
+        bearings, tau, mask, order, np.asarray(tau_s, dtype=np.float64)
+    )
+    return TrackFit(bearing, rate, tau_ref, gain, valid)
 
 
 @dataclass

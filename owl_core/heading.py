@@ -384,9 +384,10 @@ def _check_motion_inputs(
     derotated: npt.ArrayLike,
     flow_sigma: float | npt.ArrayLike,
     rotation_prior_cov: npt.ArrayLike,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    fit_weights: npt.ArrayLike | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """:func:`estimate_motion`'s inputs as float64 arrays: e (N, 3), f (N, 3), sigma (N,),
-    prior (3, 3); InvalidInputError quoting a wrong shape."""
+    prior (3, 3), weights (N,); InvalidInputError quoting a wrong shape or value."""
     e = np.asarray(bearings, dtype=np.float64)
     f = np.asarray(derotated, dtype=np.float64)
     if e.ndim != 2 or e.shape[1] != 3 or f.shape != e.shape:
@@ -397,7 +398,12 @@ def _check_motion_inputs(
     prior = np.asarray(rotation_prior_cov, dtype=np.float64)
     if prior.shape != (3, 3):
         raise InvalidInputError(f"rotation_prior_cov must have shape (3, 3), got {prior.shape}")
-    return e, f, sigma, prior
+    weights = np.ones(e.shape[0])
+    if fit_weights is not None:
+        weights = np.broadcast_to(np.asarray(fit_weights, dtype=np.float64), (e.shape[0],))
+        if not np.all((weights > 0) & (weights <= 1)):
+            raise InvalidInputError("fit_weights must lie in (0, 1]")
+    return e, f, sigma, prior, weights
 
 
 def estimate_motion(
@@ -424,21 +430,17 @@ def estimate_motion(
         rng: random generator for RANSAC (default: seeded, deterministic).
         estimate_rotation: False fixes delta = 0 (heading only, 2 unknowns).
         initial_heading: (3,) optional extra start (e.g. the previous frame's heading).
-        fit_weights: (N,) optional weights in (0, 1] of the points in the heading fit (its
-            RANSAC score and Gauss-Newton: a point's noise there is ``flow_sigma /
-            sqrt(weight)``), e.g. lower for a track whose error persists. The tests whether
+        fit_weights: (N,) optional weights in (0, 1] of the points in the heading fit
+            (RANSAC and Gauss-Newton see the noise ``flow_sigma / sqrt(weight)``); whether
             the camera translates, the residuals and the inlier flags use ``flow_sigma``.
 
     Returns:
         :class:`MotionEstimate`.
     """
     opts = options or HeadingOptions()
-    e, f, sigma, prior = _check_motion_inputs(bearings, derotated, flow_sigma, rotation_prior_cov)
-    weights = np.ones(e.shape[0])
-    if fit_weights is not None:
-        weights = np.broadcast_to(np.asarray(fit_weights, dtype=np.float64), (e.shape[0],))
-        if not np.all((weights > 0) & (weights <= 1)):
-            raise InvalidInputError("fit_weights must lie in (0, 1]")
+    e, f, sigma, prior, weights = _check_motion_inputs(
+        bearings, derotated, flow_sigma, rotation_prior_cov, fit_weights
+    )
     n = e.shape[0]
     rng = rng or np.random.default_rng(0)
     usable = np.all(np.isfinite(e), axis=1) & np.all(np.isfinite(f), axis=1)
@@ -453,11 +455,8 @@ def estimate_motion(
         )  # fmt: skip
     eu, fu, su, wu = e[usable], f[usable], sigma[usable], weights[usable]
     # the estimate runs on an even subsample; residuals and flags cover every usable point
-    if eu.shape[0] > opts.max_points:
-        sub = np.linspace(0, eu.shape[0] - 1, opts.max_points).astype(np.int64)
-        es, fs, ss, ws = eu[sub], fu[sub], su[sub], wu[sub]
-    else:
-        es, fs, ss, ws = eu, fu, su, wu
+    sub = np.linspace(0, eu.shape[0] - 1, min(opts.max_points, eu.shape[0])).astype(np.int64)
+    es, fs, ss, ws = eu[sub], fu[sub], su[sub], wu[sub]
     prior_inv: FloatArray = (
         np.asarray(np.linalg.inv(prior + 1e-18 * np.eye(3)), dtype=np.float64)
         if estimate_rotation
@@ -474,10 +473,10 @@ def estimate_motion(
         inl[usable] = np.sqrt(np.einsum("na,na->n", r_all, r_all)) / su < opts.inlier_sigma * 1.5
         hidden = robust_rms * float(np.median(ss))
         rot_delta, rot_cov = _with_hidden_translation(rot_delta, rot_cov, prior_inv, hidden)
+        why = f"(residual {robust_rms:.2f} sigma, flow {flow_snr:.1f} sigma)"
         return MotionEstimate(
             None, np.inf, rot_delta, rot_cov, False, inl, residuals,
-            "no translation: the flow is explained by a rotation alone "
-            f"(residual {robust_rms:.2f} sigma, flow {flow_snr:.1f} sigma)",
+            "no translation: the flow is explained by a rotation alone " + why,
         )  # fmt: skip
     if flow_snr < opts.min_translation_snr:
         # Some flow is left after removing a rotation, but too little to tell translation
