@@ -116,6 +116,11 @@ class EngineOptions:
             leftover rotation of one fit window, together with the bias uncertainty).
         bias_inflation: divisor (>= 1) of each frame's bias information (consecutive fit
             windows share frames, so their errors are correlated).
+        bias_scatter_window: frames over which the bias filter measures the scatter of the
+            frames' leftover rotations beyond their claimed covariances (model errors of
+            real sensors) and adds it to every measurement and to the heading fit's
+            rotation prior, count; 0: trust the claims (see
+            :class:`~owl_core.heading.GyroBiasFilter`).
         bias_observable_sigma: a frame updates the bias only in the directions in which it
             determines the leftover rotation to better than this 1-sigma, rad/s (the others
             stay put: a rotation the flow cannot tell from a translation); inf: all.
@@ -184,6 +189,7 @@ class EngineOptions:
     bias_random_walk: float = 1e-4
     gyro_noise_density: float = 2e-4
     bias_inflation: float = 3.0
+    bias_scatter_window: int = 30
     bias_observable_sigma: float = math.inf
     no_gyro_rotation_sigma: float = 2.0
     max_frame_gap_s: float = 0.5
@@ -276,6 +282,10 @@ class EngineOptions:
             )
         if not self.max_speed_rate > 0:
             raise InvalidInputError(f"max_speed_rate must be > 0, got {self.max_speed_rate!r}")
+        if not (isinstance(self.bias_scatter_window, int) and 0 <= self.bias_scatter_window):
+            raise InvalidInputError(
+                f"bias_scatter_window must be an int >= 0, got {self.bias_scatter_window!r}"
+            )
         if not self.bias_inflation >= 1.0:
             raise InvalidInputError(f"bias_inflation must be >= 1, got {self.bias_inflation!r}")
         if len(self.initial_bias_imu) != 3 or not all(
@@ -573,6 +583,7 @@ class OwlEngine:
             initial_sigma=opts.bias_initial_sigma,
             random_walk=opts.bias_random_walk,
             initial_bias=opts.initial_bias_imu,
+            adaptive_window=opts.bias_scatter_window,
         )
         self._tracker = FeatureTracker(self._tracker_options)
         self._clock: Callable[[], float] = time.perf_counter
@@ -1109,8 +1120,10 @@ class OwlEngine:
         opts = self.options
         if integ.with_gyro:
             self._bias.predict(max(stamp - (prev or stamp), 0) * 1e-9)
-            prior = self._bias.cov_camera + np.eye(3) * opts.gyro_noise_density**2 / max(
-                integ.window_s, 1e-3
+            # the leftover rotation of this window: the bias error, the gyro noise over the
+            # window and the frame-to-frame scatter the bias filter measured beyond both
+            prior = self._bias.cov_camera + np.eye(3) * (
+                opts.gyro_noise_density**2 / max(integ.window_s, 1e-3) + self._bias.model_variance
             )
             if not opts.estimate_bias:
                 prior = prior * 1e-12

@@ -381,6 +381,17 @@ PARAMS: tuple[Param, ...] = (
         engine="bias_random_walk",
     ),
     Param(
+        "bias_scatter_window",
+        "int",
+        _E.bias_scatter_window,
+        "frames over which the bias filter measures how far the frames' leftover rotations "
+        "scatter beyond their claimed noise (real sensors' model errors) and widens its "
+        "measurements by it; 0 trusts the claims",
+        low=0,
+        high=10000,
+        engine="bias_scatter_window",
+    ),
+    Param(
         "gyro_noise_density",
         "double",
         _E.gyro_noise_density,

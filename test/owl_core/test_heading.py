@@ -213,6 +213,62 @@ def test_weak_translation_gives_neither_heading_nor_rotation() -> None:
     np.testing.assert_allclose(filt.cov, PRIOR)
 
 
+def _bias_run(
+    window: int, scatter: float, claimed: float, frames: int = 150, seed: int = 5
+) -> tuple[hd.GyroBiasFilter, list[float]]:
+    """Closed loop on the filter alone: each frame measures the leftover rotation (state
+    minus truth, camera = IMU frame) with an error of 1-sigma ``scatter`` per axis while
+    claiming ``claimed``; the prior is what the engine gives the heading fit (the state's
+    covariance plus the measured scatter). Returns the filter and the model variance per
+    frame."""
+    rng = np.random.default_rng(seed)
+    truth = np.array([0.004, -0.006, 0.002])
+    filt = hd.GyroBiasFilter(initial_sigma=0.02, random_walk=1e-4, adaptive_window=window)
+    info_r = np.eye(3) / claimed**2
+    q = []
+    for _ in range(frames):
+        filt.predict(1 / 17)
+        prior = filt.cov_camera + np.eye(3) * filt.model_variance
+        m = (filt.bias - truth) + rng.normal(scale=scatter, size=3)
+        post = np.linalg.inv(np.linalg.inv(prior) + info_r)
+        filt.update(post @ info_r @ m, post, prior, 3.0)
+        q.append(filt.model_variance)
+    return filt, q
+
+
+def test_bias_filter_measures_the_scatter_its_measurements_leave_out() -> None:
+    """Frames scattering 0.03 rad/s around the truth while each claims 0.001 (what a
+    handheld walk's frames do): trusting the claims, the first frames set the bias and the
+    gate rejects most of the rest, far from the truth in its own sigmas; matching the
+    scatter, the filter finds it (0.03 within 30 %), rejects almost nothing and ends within
+    3 of its own sigmas, which are honest (0.03 / sqrt(150 / 3) = 0.0042; measured 0.0047)."""
+    trusting, _ = _bias_run(0, 0.03, 0.001)
+    err = np.abs(trusting.bias - np.array([0.004, -0.006, 0.002]))
+    sigma = np.sqrt(np.diag(trusting.cov))
+    assert trusting.rejected > 50 or np.max(err / sigma) > 5
+    matched, q = _bias_run(30, 0.03, 0.001)
+    assert 0.7 * 0.03 < np.sqrt(np.median(q[30:])) < 1.3 * 0.03
+    assert matched.rejected <= 3
+    err = np.abs(matched.bias - np.array([0.004, -0.006, 0.002]))
+    sigma = np.sqrt(np.diag(matched.cov))
+    assert np.all(err < 3 * sigma), (err, sigma)
+    assert np.all((0.002 < sigma) & (sigma < 0.008))
+
+
+def test_bias_filter_adds_nothing_where_the_claims_hold() -> None:
+    """Measurements as noisy as they claim: the measured scatter stays 0 (the median of
+    z^2 / 0.455 is the claimed variance, below the factor-2 threshold) and the filter is the
+    plain one."""
+    plain, _ = _bias_run(0, 0.001, 0.001)
+    matched, q = _bias_run(30, 0.001, 0.001)
+    assert np.count_nonzero(q) <= 0.05 * len(q)
+    sigma = np.sqrt(np.diag(plain.cov))
+    np.testing.assert_array_less(np.abs(matched.bias - plain.bias), 0.5 * sigma)
+    assert matched.rejected == plain.rejected == 0
+    with pytest.raises(InvalidInputError, match="adaptive_window"):
+        hd.GyroBiasFilter(adaptive_window=-1)
+
+
 def test_bias_filter_gate_rejects_outliers() -> None:
     filt = hd.GyroBiasFilter(initial_sigma=1e-3)
     prior = filt.cov_camera

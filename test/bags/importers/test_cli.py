@@ -254,7 +254,11 @@ def test_realsense_walk_extrinsic_and_points(
 
     root = shared("realsense_walk")
     bag = tmp_path / "walk"
-    assert main([str(root), str(bag), "--seconds", "5", "-q"]) == 0
+    # the whole 10 s recording: on its first 5 s alone, 71 of 83 frames after warm-up have
+    # points (86 %): while the bias filter still doubts the gyro (the frames' measured
+    # scatter is about 0.03 rad/s here), 11 frames of the walk's first 0.8 s are judged "no
+    # translation"; over the recording 154 of 166 (93 %)
+    assert main([str(root), str(bag), "-q"]) == 0
     printed = capsys.readouterr().out.strip()
     r_bs, _ = transform(read_yaml(root / "mav0" / "cam0" / "sensor.yaml")["T_BS"], root)
     with BagReader(bag) as reader:
