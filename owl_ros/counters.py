@@ -42,6 +42,9 @@ class Counters:
         processed, frames_with_points, frames_metric, headings: frames the engine
             processed; of those, with points, with metric points, with a heading.
         frames_imu_not_covered: processed frames whose interval the IMU did not cover.
+        frames_imu_late: of those, frames the IMU reached after they were processed (it
+            arrives later than the queue kept the frame waiting: ``queue_size`` or
+            ``imu_wait_s`` too small for this IMU's latency).
         time_jumps: backwards time jumps (engine reset).
         reconfigured, camera_changed, bad_camera_info: engine rebuilds for new options or
             a new calibration; camera_info messages rejected.
@@ -70,6 +73,7 @@ class Counters:
     frames_metric: int = 0
     headings: int = 0
     frames_imu_not_covered: int = 0
+    frames_imu_late: int = 0
     time_jumps: int = 0
     reconfigured: int = 0
     camera_changed: int = 0

@@ -199,6 +199,7 @@ class Pipeline:
         self._camera_key: tuple[Any, ...] | None = None
         self._camera_error: str | None = None
         self._calibration: CalibrationMonitor | None = None
+        self._uncovered_ns: int | None = None  # newest frame processed without its IMU
         self._imu_arrival_ns: int | None = None
         self._imu_frame_id = ""  # of the newest IMU message: the frame of owl/gyro_bias
         self._speeds: collections.deque[tuple[int, float]] = collections.deque(maxlen=SPEED_KEEP)
@@ -284,6 +285,7 @@ class Pipeline:
         if self._engine is not None:
             self._engine.reset()  # the gyro buffer too
         self._gyro.reset()
+        self._uncovered_ns = None
         if self._calibration is not None:
             self._calibration.reset()
 
@@ -391,6 +393,10 @@ class Pipeline:
         t.imu_gaps += intake.gaps
         if intake.problem is not None:
             self._notes.imu_problem = imu_problem_text(intake.problem)
+        late = self._uncovered_ns
+        if late is not None and self._gyro.covers(late, late):
+            t.frames_imu_late += 1  # its IMU came, after the frame had been processed
+            self._uncovered_ns = None
 
     def add_speed(self, msg: Any) -> None:
         """A nav_msgs/Odometry or geometry_msgs/TwistStamped (speed = |linear velocity|)."""
@@ -553,6 +559,7 @@ class Pipeline:
             )
         if not covered:
             self.totals.frames_imu_not_covered += 1
+            self._uncovered_ns = stamp  # counted late if the IMU reaches it afterwards
         return self._output(frame, stamp, image.image, result)
 
     def _output(

@@ -609,6 +609,14 @@ def summary_notes(summary: Summary, opts: ProcessOptions) -> list[str]:
         notes.append(f"frames without points: {without} of {summary.frames_processed} ({text})")
         if not opts.imu_topic and opts.node.engine.require_gyro:
             notes.append(f"no IMU topic and require_gyro is true: {NO_IMU_HINT}")
+        late = summary.counts.get("frames_imu_late", 0)
+        if late:
+            queue = opts.node.queue_size
+            notes.append(
+                f"{late} frames were processed before the IMU covering them arrived (it comes "
+                f"later in the bag than the next image): keep them waiting with "
+                f"-p queue_size:={max(2 * queue, 4)} (now {queue})"
+            )
     if summary.extrinsic_source == "default":
         notes.append(
             "warning: no camera-IMU rotation given and none in /tf_static: used the identity; "

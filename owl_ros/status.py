@@ -226,6 +226,12 @@ def gyro_status(s: StatusInputs) -> StatusRecord:
     message = f"bias [{bias[0]:.4g}, {bias[1]:.4g}, {bias[2]:.4g}] rad/s"
     if gaps:
         message += f"; {gaps} frames without full IMU coverage"
+    if c.frames_imu_late:
+        message += (
+            f" ({c.frames_imu_late} of them reached by the IMU only after processing: it "
+            "arrives later than the queue keeps a frame waiting; raise queue_size or "
+            "imu_wait_s)"
+        )
     if math.isfinite(s.imu_time_offset_sigma_s):
         message += (
             f"; imu_time_offset estimate {1e3 * s.imu_time_offset_s:.2f} ms "
@@ -245,6 +251,7 @@ def gyro_status(s: StatusInputs) -> StatusRecord:
             "bias_z_rad_s": float(bias[2]),
             "bias_sigma_rad_s": float(np.max(s.gyro_bias_sigma)),
             "frames_imu_not_covered_total": s.totals.frames_imu_not_covered,
+            "frames_imu_late_total": s.totals.frames_imu_late,
             "require_gyro": s.require_gyro,
             "imu_time_offset_s": s.imu_time_offset_s,
             "imu_time_offset_sigma_s": s.imu_time_offset_sigma_s,

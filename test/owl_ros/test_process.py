@@ -423,6 +423,29 @@ def test_online_time_offset_converges_to_the_bag_s_offset(
     assert math.isnan(float(values["imu_time_offset_sigma_s"]))
 
 
+def test_an_imu_later_than_the_queue_waits_is_named_with_the_queue_size_to_use(
+    lagging_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The IMU 40 ms behind the images in the bag, offset configured right: with the
+    default queue of 2 every frame is taken when the next image comes (33 ms later), before
+    its IMU; the summary says so and which queue_size keeps them waiting, and /diagnostics
+    counts the frames the IMU reached only afterwards. With that queue size: all covered."""
+    short = tmp_path / "short"
+    args = ["--imu-time-offset", "0.04", "-q"]
+    assert process.main([str(lagging_bag), "-o", str(short), *args]) == 0
+    lines = capsys.readouterr().err.strip().splitlines()
+    late = [line for line in lines if "before the IMU covering them arrived" in line]
+    assert len(late) == 1 and late[0].endswith("-p queue_size:=4 (now 2)"), lines
+    values = gyro_values(short)
+    n_late = int(values["frames_imu_late_total"])
+    assert n_late >= 0.9 * int(values["frames_imu_not_covered_total"]) > 0
+    waiting = tmp_path / "waiting"
+    assert process.main([str(lagging_bag), "-o", str(waiting), *args, "-p", "queue_size:=4"]) == 0
+    assert "before the IMU covering them arrived" not in capsys.readouterr().err
+    values = gyro_values(waiting)
+    assert values["frames_imu_late_total"] == values["frames_imu_not_covered_total"] == "0"
+
+
 def test_summary_says_why_frames_have_no_points_and_what_to_do_without_imu(
     bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
