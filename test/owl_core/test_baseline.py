@@ -150,3 +150,35 @@ def test_on_tracks_uses_the_frame_gap_frames_earlier():
     assert calls == [(int(stamps[3]), int(stamps[0]))]
     with pytest.raises(InvalidInputError, match="rotation provider"):
         TwoViewBaseline(cam, BaselineOptions(method="gyro"))
+
+
+def test_small_baselines_keep_the_sign_of_the_heading(monkeypatch: pytest.MonkeyPatch) -> None:
+    """5 cm between the frames (1.5 m/s at 30 Hz), points 5-25 m away (100-500 baselines),
+    0.3 px noise: every point votes in recoverPose's cheirality check, so each of ten
+    scenes gets a heading and none is reversed (the 5-point heading itself is noisy this
+    close: up to about 50 deg). With OpenCV's default distance threshold (50 baselines) no
+    point votes: frames without a heading, or with a reversed one."""
+    import owl_core.baseline as bl
+
+    def noisy(e: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        x = e[:, :2] / e[:, 2:] + rng.normal(scale=0.3 / FOCAL, size=(e.shape[0], 2))
+        v = np.column_stack([x, np.ones(e.shape[0])])
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    def headings() -> list[float | None]:
+        """Heading error per scene, degrees (None: no heading)."""
+        out: list[float | None] = []
+        for seed in range(10):
+            e0, e1, _, h, _, dt = scene(
+                [0.2, -0.1, 1.0], [0.01, 0.02, 0.0], n=200, seed=seed, speed=1.5, dt=1 / 30
+            )
+            rng = np.random.default_rng(100 + seed)
+            est = bl.essential_two_view(noisy(e0, rng), noisy(e1, rng), dt, FOCAL)
+            out.append(None if est.heading is None else np.degrees(angle(est.heading, h)))
+        return out
+
+    got = headings()
+    assert all(a is not None and a < 90.0 for a in got), got
+    monkeypatch.setattr(bl, "POSE_DISTANCE_BASELINES", 50.0)
+    default = headings()
+    assert any(a is None or a > 90.0 for a in default), default
