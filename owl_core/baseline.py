@@ -92,6 +92,11 @@ class BaselineOptions:
         min_points: fewer correspondences than this -> no estimate, count (>= 5).
         min_parallax_deg: triangulated points whose two rays meet at less than this angle
             get no range (it would be noise), degrees.
+        min_heading_parallax_px: no heading when the inliers' median parallax (the angle
+            between a point's two rays once the pair's rotation is removed, times the focal
+            length) is below this, pixels: a rotation alone explains the pair (the camera
+            only turned, or moved too little for a direction), as a visual-odometry
+            initialiser refuses a pair without parallax. 0 disables it.
         seed: seed of OpenCV's and numpy's RANSAC random generators.
 
     The defaults are the best of a sweep on the ``street`` and ``cube`` scenarios at 640x480
@@ -108,6 +113,7 @@ class BaselineOptions:
     max_iterations: int = 1000
     min_points: int = 8
     min_parallax_deg: float = 0.05
+    min_heading_parallax_px: float = 0.5
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -125,6 +131,10 @@ class BaselineOptions:
             raise InvalidInputError(f"threshold_px must be positive, got {self.threshold_px!r}")
         if not 0 < self.confidence < 1:
             raise InvalidInputError(f"confidence must be in (0, 1), got {self.confidence!r}")
+        if not (math.isfinite(self.min_heading_parallax_px) and self.min_heading_parallax_px >= 0):
+            raise InvalidInputError(
+                f"min_heading_parallax_px must be >= 0, got {self.min_heading_parallax_px!r}"
+            )
         if not (math.isfinite(self.min_parallax_deg) and self.min_parallax_deg >= 0):
             raise InvalidInputError(
                 f"min_parallax_deg must be >= 0, got {self.min_parallax_deg!r}"
@@ -287,9 +297,26 @@ def essential_two_view(
     r_10: FloatArray = np.asarray(r_cv, dtype=np.float64)
     inliers = np.zeros(n, dtype=bool)
     inliers[idx[inl]] = True
+    parallax = _median_parallax_px(a[inliers], b[inliers], r_10, focal_px)
+    if parallax < opts.min_heading_parallax_px:
+        return _empty(n, _no_parallax(parallax, opts), r_10)
     range_over_speed = triangulate_current(a, b, r_10, heading, interval_s, opts.min_parallax_deg)
     range_over_speed[~inliers] = np.nan
     return TwoViewEstimate(heading, r_10, range_over_speed, inliers)
+
+
+def _median_parallax_px(a: FloatArray, b: FloatArray, r_10: FloatArray, focal_px: float) -> float:
+    """Median angle between ``b`` (K, 3) and the rotated ``a`` (K, 3) unit bearings, times
+    ``focal_px``: the pair's parallax once its rotation is removed, pixels."""
+    sin = np.linalg.norm(np.cross(b, a @ r_10.T), axis=1)
+    return float(np.median(sin)) * focal_px if sin.size else 0.0
+
+
+def _no_parallax(parallax_px: float, opts: BaselineOptions) -> str:
+    return (
+        f"too little parallax for a heading: median {parallax_px:.2f} px < "
+        f"min_heading_parallax_px {opts.min_heading_parallax_px}"
+    )
 
 
 def _unit_rows(v: FloatArray) -> FloatArray:
@@ -355,6 +382,9 @@ def gyro_two_view(
         if np.count_nonzero(new_inl) < opts.min_points or np.array_equal(new_inl, inl):
             break
         inl = new_inl
+    parallax = float(np.median(np.linalg.norm(normals[inl], axis=1))) * focal_px
+    if parallax < opts.min_heading_parallax_px:
+        return _empty(n, _no_parallax(parallax, opts), r_10)
     flow = b[idx] - a_rot  # derotated displacement; static points move away from the FOE
     if np.median(flow[inl] @ h) > 0:
         h = -h

@@ -182,3 +182,32 @@ def test_small_baselines_keep_the_sign_of_the_heading(monkeypatch: pytest.Monkey
     monkeypatch.setattr(bl, "POSE_DISTANCE_BASELINES", 50.0)
     default = headings()
     assert any(a is None or a > 90.0 for a in default), default
+
+
+def test_a_pair_a_rotation_explains_gives_no_heading() -> None:
+    """The camera only turned (0.3 px tracking noise): both baselines refuse a heading, as a
+    visual-odometry initialiser refuses a pair without parallax (median derotated parallax
+    about 0.3 px here, below ``min_heading_parallax_px`` 0.5 px); with the gate off the
+    5-point solver returns a direction fitted to the noise."""
+    rng = np.random.default_rng(4)
+    n = 200
+    p = np.c_[rng.uniform(-4, 4, n), rng.uniform(-3, 3, n), rng.uniform(5, 25, n)]
+    rot = so3_exp(np.array([0.01, -0.02, 0.005]))
+    e0 = p / np.linalg.norm(p, axis=1, keepdims=True)
+    e1 = e0 @ rot.T
+
+    def noisy(e: np.ndarray) -> np.ndarray:
+        x = e[:, :2] / e[:, 2:] + rng.normal(scale=0.3 / FOCAL, size=(n, 2))
+        v = np.column_stack([x, np.ones(n)])
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    a, b = noisy(e0), noisy(e1)
+    ess = essential_two_view(a, b, 1 / 30, FOCAL)
+    gyro = gyro_two_view(a, b, rot, 1 / 30, FOCAL)
+    for est in (ess, gyro):
+        assert est.heading is None
+        assert est.reason is not None and "too little parallax" in est.reason
+    ungated = essential_two_view(a, b, 1 / 30, FOCAL, BaselineOptions(min_heading_parallax_px=0))
+    assert ungated.heading is not None
+    with pytest.raises(InvalidInputError, match="min_heading_parallax_px"):
+        BaselineOptions(min_heading_parallax_px=-1.0)

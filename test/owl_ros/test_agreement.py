@@ -16,12 +16,11 @@ SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "reals
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="measured on the first 5 s at gap 4: OWL vs 5-point median 37.7 deg against 37.6 "
-    "deg between the two two-view estimates (80 against 29 before the bias filter measured "
-    "its frames' scatter and before the 5-point baseline let every point vote on the sign "
-    "of t); 50.7 against 39.2 deg with estimate_bias false. The 5-point estimates at gaps "
-    "2, 3 and 4 agree within 10 deg on 9 of the walk's 166 frames: no yardstick to move a "
-    "0.1 deg gap",
+    reason="the whole walk at gap 4: OWL vs 5-point median 37.6 deg against 31.1 deg between "
+    "the two two-view estimates (64.6 deg before the bias filter measured its frames' "
+    "scatter); on the first 5 s alone 37.7 against 37.9 deg, within. With estimate_bias "
+    "false 38.3 against 34.0 deg. The 5-point estimates at gaps 2, 3 and 4 agree within 10 "
+    "deg on 8 of the 155 frames where all three exist",
 )
 def test_owl_heading_agrees_with_the_5_point_heading_on_the_walk(tmp_path: Path) -> None:
     """The bound: the two-view estimates' own scatter on the same frames.
@@ -30,7 +29,8 @@ def test_owl_heading_agrees_with_the_5_point_heading_on_the_walk(tmp_path: Path)
     either, but the gyro-aided two-view heading (independent of the engine: the raw gyro,
     translation only) measures it: their median disagreement is the spread a second
     estimator of the same heading shows here. OWL agreeing with the 5-point heading no worse
-    than that is the bound; at gap 4 (0.24 s at 17 Hz, the gap with most 5-point headings).
+    than that is the bound; at gap 4 (0.24 s at 17 Hz, the gap with most 5-point headings),
+    over the whole 10 s recording.
     """
     if not (SHARED / "mav0").is_dir():
         msg = f"shared recording realsense_walk not found ({SHARED})"
@@ -38,8 +38,8 @@ def test_owl_heading_agrees_with_the_5_point_heading_on_the_walk(tmp_path: Path)
             pytest.fail(msg)
         pytest.skip(msg)
     bag = tmp_path / "walk"
-    assert import_main([str(SHARED), str(bag), "--seconds", "5", "-q"]) == 0
+    assert import_main([str(SHARED), str(bag), "-q"]) == 0  # the whole recording
     out = heading_agreement(bag, (4,))
     r = out["per_gap"][4]
-    assert r["both"] >= 40  # enough frames to judge
+    assert r["both"] >= 100  # enough frames to judge
     assert r["median_deg"] <= r["gyro_vs_5pt_median_deg"], r
