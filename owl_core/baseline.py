@@ -297,7 +297,7 @@ def essential_two_view(
     r_10: FloatArray = np.asarray(r_cv, dtype=np.float64)
     inliers = np.zeros(n, dtype=bool)
     inliers[idx[inl]] = True
-    parallax = _median_parallax_px(a[inliers], b[inliers], r_10, focal_px)
+    parallax = _median_parallax_px(np.cross(b[inliers], a[inliers] @ r_10.T), focal_px)
     if parallax < opts.min_heading_parallax_px:
         return _empty(n, _no_parallax(parallax, opts), r_10)
     range_over_speed = triangulate_current(a, b, r_10, heading, interval_s, opts.min_parallax_deg)
@@ -305,10 +305,10 @@ def essential_two_view(
     return TwoViewEstimate(heading, r_10, range_over_speed, inliers)
 
 
-def _median_parallax_px(a: FloatArray, b: FloatArray, r_10: FloatArray, focal_px: float) -> float:
-    """Median angle between ``b`` (K, 3) and the rotated ``a`` (K, 3) unit bearings, times
-    ``focal_px``: the pair's parallax once its rotation is removed, pixels."""
-    sin = np.linalg.norm(np.cross(b, a @ r_10.T), axis=1)
+def _median_parallax_px(normals: FloatArray, focal_px: float) -> float:
+    """Median norm of ``normals`` (K, 3) = ``e1 x (R e0)`` (the sine of each pair's angle
+    once the rotation is removed), times ``focal_px``: the parallax, pixels."""
+    sin = np.linalg.norm(normals, axis=1)
     return float(np.median(sin)) * focal_px if sin.size else 0.0
 
 
@@ -382,7 +382,7 @@ def gyro_two_view(
         if np.count_nonzero(new_inl) < opts.min_points or np.array_equal(new_inl, inl):
             break
         inl = new_inl
-    parallax = float(np.median(np.linalg.norm(normals[inl], axis=1))) * focal_px
+    parallax = _median_parallax_px(normals[inl], focal_px)
     if parallax < opts.min_heading_parallax_px:
         return _empty(n, _no_parallax(parallax, opts), r_10)
     flow = b[idx] - a_rot  # derotated displacement; static points move away from the FOE
