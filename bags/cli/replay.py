@@ -13,6 +13,11 @@ QoS offered (what a sensor driver offers, so every subscriber matches):
   A reliable publisher matches both reliable and best-effort subscriptions;
 - ``/clock``: reliable, volatile, keep last 1 (rclpy's time source subscribes best effort).
 
+Large images: unless another RMW or a Fast DDS configuration is chosen in the environment,
+the player's Fast DDS gets a 16 MiB shared-memory segment (:mod:`bags.dds`; the default
+512 KiB sends larger images, e.g. 720p, over UDP loopback, where a busy subscriber loses
+them).
+
 Exit status: 0 after the last message (or Ctrl-C / SIGTERM), 1 on a bag or type error,
 2 on bad options; errors are one line on stderr.
 
@@ -33,6 +38,7 @@ from dataclasses import dataclass
 from typing import Any, TextIO
 
 from bags.cli import StopRequest
+from bags.dds import prefer_large_image_profile
 from bags.errors import BagError
 from bags.io import BagReader, TopicInfo
 from msg_adapters.errors import AdapterError
@@ -303,6 +309,7 @@ def replay(opts: ReplayOptions, ros_args: Sequence[str] = (), stream: TextIO = s
         stop = StopRequest()
         old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
         context = Context()
+        prefer_large_image_profile()
         rclpy.init(
             args=[PROG, *ros_args],
             context=context,

@@ -18,6 +18,12 @@ rate the node keeps up with. CPU (all threads of the node process) and RSS come 
 (:data:`CASES`); each run's line says which targets it meets, and with ``--runs N`` a last
 line per case gives the medians over the runs.
 
+The publishing side uses :mod:`bags.dds`'s Fast DDS profile (a 16 MiB shared-memory
+segment, as a camera driver publishing 720p should; ``--default-transport`` measures
+without it). Each result also says where frames were lost: ``node_images`` against
+``counted_sent`` (before the node's callback: transport), ``node_dropped_queue`` (the node
+was busy), and ``publish_late_ms_p95`` (this tool's own publisher falling behind).
+
 ``measure(...)`` returns a :class:`Measurement` for reuse by the benchmark.
 """
 
@@ -37,11 +43,21 @@ from typing import Any
 import numpy as np
 
 from bags.cli import OneLineErrorParser
+from bags.dds import prefer_large_image_profile
 from owl_ros.tools.live import LiveNode
 
 PROG = "owl_latency"
 #: measure()'s default warm-up before the window, s.
 WARMUP_S = 2.0
+#: The node counters read from ``/diagnostics`` (see :class:`Measurement`).
+_COUNTERS = (
+    "images_total",
+    "dropped_queue_full_total",
+    "frames_processed_total",
+    "processing_ms_mean",
+)
+#: Wait after the window for the node's next diagnostics (published at 1 Hz), s.
+_DIAGNOSTICS_WAIT_S = 1.5
 
 
 @dataclass(frozen=True)
@@ -86,6 +102,18 @@ class Measurement:
         cpu_percent: node process CPU time / wall time over the window, % of one core.
         rss_mb: node resident set size at the end, MiB.
         points_per_cloud: mean points per non-empty cloud.
+        counted_sent: images published between the node's first ``/diagnostics`` in the
+            window and its last one (the span its counters below cover).
+        node_images: images the node received in that span (its ``images_total``);
+            fewer than ``counted_sent``: lost in transport.
+        node_dropped_queue: of those, dropped from its full newest-wins queue (the node
+            was busy: ``dropped_queue_full_total``).
+        node_processed: frames it processed in that span (``frames_processed_total``).
+        node_engine_ms: the node's engine wall time per processed frame (median over the
+            window's ``/diagnostics`` of its ``processing_ms_mean``), ms; against the
+            frame interval it says whether the engine or the rest of the node is short.
+        publish_late_ms_p95: p95 of how late this tool published an image after its
+            stamp (its own loop falling behind; included in the latency), ms.
     """
 
     input_rate_hz: float
@@ -101,6 +129,12 @@ class Measurement:
     cpu_percent: float
     rss_mb: float
     points_per_cloud: float
+    counted_sent: int = -1
+    node_images: int = -1
+    node_dropped_queue: int = -1
+    node_processed: int = -1
+    node_engine_ms: float = float("nan")
+    publish_late_ms_p95: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -170,6 +204,7 @@ def measure(
 ) -> Measurement:
     """Run owl_node, publish ``clip`` looped at ``speed`` x its rate, measure (see module)."""
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import Vector3
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
@@ -208,6 +243,20 @@ def measure(
         on_cloud,
         QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE),
     )
+    # the node's counters (``*_total`` in /diagnostics) with their arrival times
+    snapshots: list[tuple[int, dict[str, float]]] = []
+
+    def on_diagnostics(msg: Any) -> None:
+        found = {
+            kv.key: float(kv.value)
+            for status in msg.status
+            for kv in status.values
+            if kv.key in _COUNTERS
+        }
+        if found:
+            snapshots.append((time.time_ns(), found))
+
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
     for topic in image_topics:  # e.g. a dense output, which is built only while subscribed
         node.create_subscription(Image, topic, lambda _msg: None, QoSProfile(depth=10))
     pub_img = node.create_publisher(Image, "/lat/image", qos_profile_sensor_data)
@@ -222,6 +271,8 @@ def measure(
     )
     spinner.start()
     sent: list[int] = []
+    late_ms: list[float] = []
+    published: list[int] = []  # wall time of every image publication, ns
     try:
         live.wait_until(
             lambda: (
@@ -250,10 +301,12 @@ def measure(
                 msg.header.stamp = ns_to_stamp(stamp)
                 if kind == 0:
                     clip.info.header.stamp = msg.header.stamp
+                    published.append(time.time_ns())
                     pub_img.publish(msg)
                     pub_info.publish(clip.info)
                     if stamp >= window:
                         sent.append(stamp)
+                        late_ms.append((time.time_ns() - stamp) * 1e-6)
                 else:
                     w = rate * speed
                     msg.angular_velocity = Vector3(x=float(w[0]), y=float(w[1]), z=float(w[2]))
@@ -264,6 +317,7 @@ def measure(
         time.sleep(1.0)
         cpu1, wall1 = proc_cpu_s(node_pid), time.monotonic()
         rss = proc_rss_mb(node_pid)
+        time.sleep(_DIAGNOSTICS_WAIT_S)  # the counters after the last frame
     finally:
         stop.set()
         spinner.join(timeout=2)
@@ -291,7 +345,34 @@ def measure(
         cpu_percent=float(cpu),
         rss_mb=rss,
         points_per_cloud=float(np.mean(pts)) if pts else 0.0,
+        **_node_counts(snapshots, window, published),
+        publish_late_ms_p95=float(np.percentile(late_ms, 95)) if late_ms else float("nan"),
     )
+
+
+def _node_counts(
+    snapshots: Sequence[tuple[int, dict[str, float]]], window_ns: int, published: Sequence[int]
+) -> dict[str, Any]:
+    """The node's counters between its first diagnostics at or after ``window_ns`` and
+    its last, and the images published in that span (-1 each without two snapshots)."""
+    inside = [(t, c) for t, c in snapshots if t >= window_ns]
+    if len(inside) < 2:
+        return {}
+    (t0, c0), (t1, c1) = inside[0], inside[-1]
+    pub = np.asarray(published, dtype=np.int64)
+
+    def delta(key: str) -> int:
+        return round(c1.get(key, 0.0) - c0.get(key, 0.0))
+
+    engine = [c["processing_ms_mean"] for _, c in inside[1:] if "processing_ms_mean" in c]
+    engine = [v for v in engine if np.isfinite(v)]
+    return {
+        "counted_sent": int(np.count_nonzero((pub > t0) & (pub <= t1))),
+        "node_images": delta("images_total"),
+        "node_dropped_queue": delta("dropped_queue_full_total"),
+        "node_processed": delta("frames_processed_total"),
+        "node_engine_ms": float(np.median(engine)) if engine else float("nan"),
+    }
 
 
 def meets(case: LatencyCase, m: Measurement) -> dict[str, bool]:
@@ -378,6 +459,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="also subscribe to this sensor_msgs/Image topic of the node (e.g. "
         "/owl/range_over_speed with -p dense:=true), repeatable",
     )  # fmt: skip
+    p.add_argument(
+        "--default-transport", action="store_true",
+        help="publish with Fast DDS's default transports (512 KiB shared-memory segment; "
+        "larger images go over UDP) instead of bags.dds's 16 MiB segment",
+    )  # fmt: skip
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     return p
 
@@ -393,6 +479,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     def say(text: str) -> None:
         if not args.quiet:
             print(f"{PROG}: {text}", file=sys.stderr, flush=True)
+
+    if not args.default_transport:  # this process publishes the images (a camera driver)
+        profile = prefer_large_image_profile()
+        if profile is not None:
+            say(f"Fast DDS profile {profile} (16 MiB shared-memory segment)")
 
     if args.case:
         node_args = [x for item in args.param for x in ("-p", item)]

@@ -81,3 +81,37 @@ def test_latency_one_line_errors(capsys) -> None:
     assert done.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("owl_latency: error:")
+
+
+def test_node_counts_cover_the_span_of_the_nodes_own_diagnostics() -> None:
+    # Diagnostics at 1 Hz (times in ns); the window opens at 1.5 s. The span is from the
+    # first snapshot inside the window (2 s) to the last (5 s); images published in it
+    # are compared with what the node counted over the same span.
+    def snap(t: float, images: int, dropped: int, processed: int, engine: float):
+        return (
+            round(t * 1e9),
+            {
+                "images_total": float(images),
+                "dropped_queue_full_total": float(dropped),
+                "frames_processed_total": float(processed),
+                "processing_ms_mean": engine,
+            },
+        )
+
+    snapshots = [
+        snap(1.0, 30, 0, 30, 99.0),  # before the window: not used
+        snap(2.0, 60, 5, 55, 40.0),
+        snap(3.0, 90, 10, 80, 42.0),
+        snap(4.0, 100, 12, 88, float("nan")),  # a window without frames
+        snap(5.0, 120, 20, 100, 44.0),
+    ]
+    published = [round((1.9 + k / 30) * 1e9) for k in range(90)]  # 1.9 s .. 4.87 s
+    got = latency._node_counts(snapshots, round(1.5e9), published)
+    assert got == {
+        "counted_sent": sum(1 for t in published if 2e9 < t <= 5e9),
+        "node_images": 60,
+        "node_dropped_queue": 15,
+        "node_processed": 45,
+        "node_engine_ms": 43.0,  # median of 42 and 44 (the first in-window one opens it)
+    }
+    assert latency._node_counts(snapshots[:2], round(1.5e9), published) == {}
