@@ -37,6 +37,8 @@ class Counters:
         speed_invalid, speed_stale, speed_too_low: speed messages unreadable / speeds not
             used for a frame (too old, below ``min_speed``).
         dropped_queue_full: frames dropped from the full queue (newest wins).
+        images_missing: images missing between the received ones' stamps, lost before
+            the node (``owl_ros.scheduler.StampGaps``).
         skipped_no_camera_info, skipped_bad_image, skipped_duplicate_stamp,
             skipped_engine_error: frames taken from the queue but not processed.
         processed, frames_with_points, frames_metric, headings: frames the engine
@@ -64,6 +66,7 @@ class Counters:
     speed_stale: int = 0
     speed_too_low: int = 0
     dropped_queue_full: int = 0
+    images_missing: int = 0
     skipped_no_camera_info: int = 0
     skipped_bad_image: int = 0
     skipped_duplicate_stamp: int = 0

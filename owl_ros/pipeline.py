@@ -133,6 +133,7 @@ class _Notes:
     imu_problem: str = ""
     jump: str = ""
     qos_events: list[str] = field(default_factory=list)
+    image_bytes: int = 0  # size of the newest image message's data
 
 
 def _speed_of(msg: Any) -> tuple[int, float]:
@@ -422,6 +423,7 @@ class Pipeline:
         received, dropped = self._scheduler.queue.counts()
         self.totals.images += received
         self.totals.dropped_queue_full += dropped
+        self.totals.images_missing += self._scheduler.queue.missing()
 
     def _probe(self, frame: Frame) -> Probe:
         """What the readiness rule needs to know about ``frame``'s inputs."""
@@ -501,6 +503,7 @@ class Pipeline:
     def _to_frame(self, msg: Any, camera: CameraModel) -> ImageFrame | None:
         """The engine's input from an image message, or None (skipped: bad image)."""
         bits = self.options.significant_bits
+        self._notes.image_bytes = len(getattr(msg, "data", b""))
         try:
             if hasattr(msg, "format"):
                 frame = compressed_to_frame(msg, bits)
@@ -639,6 +642,7 @@ class Pipeline:
             last_empty_reason=notes.empty_reason,
             last_jump=notes.jump,
             qos_events=tuple(notes.qos_events),
+            image_bytes=notes.image_bytes,
             heading_sigma_rad=result.heading_sigma_rad if result is not None else math.nan,
             gyro_bias=engine.gyro_bias if engine is not None else np.zeros(3),
             gyro_bias_sigma=engine.gyro_bias_sigma if engine is not None else np.full(3, math.nan),

@@ -22,6 +22,11 @@ from owl_core.calib_check import MonitorVerdict
 from owl_ros.counters import Counters
 
 DIAG_PREFIX = "owl"
+#: ``owl: input`` warns when more than this share of the window's images is missing
+#: between the received stamps.
+MISSING_IMAGES_WARN = 0.05
+#: Fast DDS's default shared-memory segment, bytes: larger samples go over UDP.
+FAST_DDS_SHM_SEGMENT_BYTES = 512 * 1024
 
 
 def _percentile(values: Sequence[float], q: float) -> float:
@@ -49,6 +54,7 @@ class StatusInputs:
         last_bad_image, last_imu_problem, last_empty_reason, last_jump: the newest text of
             each kind ("" for none).
         qos_events: QoS event texts, oldest first.
+        image_bytes: size of the newest image message's data, bytes (0 before one).
         heading_sigma_rad: the last result's heading sigma, rad (NaN without a result).
         gyro_bias, gyro_bias_sigma: (3,) engine bias estimate and its sigma, rad/s, IMU
             frame (zeros / NaN without an engine).
@@ -76,6 +82,7 @@ class StatusInputs:
     last_empty_reason: str = ""
     last_jump: str = ""
     qos_events: Sequence[str] = ()
+    image_bytes: int = 0
     heading_sigma_rad: float = math.nan
     gyro_bias: npt.NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     gyro_bias_sigma: npt.NDArray[np.float64] = field(default_factory=lambda: np.full(3, np.nan))
@@ -121,9 +128,25 @@ def _input_problems(s: StatusInputs) -> tuple[Level, list[str]]:
         warnings.append(s.last_imu_problem)
     if c.qos_events:
         warnings.append(f"QoS: {s.qos_events[-1]}")
+    if c.images_missing > MISSING_IMAGES_WARN * (c.images + c.images_missing):
+        warnings.append(_missing_images_text(c.images_missing, c.images, s.image_bytes))
     if warnings:
         level = max(level, Level.WARN)
     return level, problems + warnings
+
+
+def _missing_images_text(missing: int, received: int, image_bytes: int) -> str:
+    text = (
+        f"{missing} of {missing + received} images missing between the received stamps "
+        "(lost before the node: camera driver or transport)"
+    )
+    if image_bytes > FAST_DDS_SHM_SEGMENT_BYTES:
+        text += (
+            f"; images of {image_bytes / 1024:.0f} KiB exceed Fast DDS's default 512 KiB "
+            "shared-memory segment and go over UDP: give the camera driver "
+            "FASTRTPS_DEFAULT_PROFILES_FILE=<owl_ros share>/config/fastdds_large_images.xml"
+        )
+    return text
 
 
 def input_status(s: StatusInputs) -> StatusRecord:
@@ -151,6 +174,7 @@ def input_status(s: StatusInputs) -> StatusRecord:
             "imu_out_of_order_total": t.imu_out_of_order,
             "last_imu_problem": s.last_imu_problem,
             "qos_events_total": t.qos_events,
+            "images_missing_total": t.images_missing,
             "qos_last_event": s.qos_events[-1] if s.qos_events else "",
             "wrong_type_publishers": "; ".join(s.wrong_type),
         },

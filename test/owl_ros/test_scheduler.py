@@ -139,3 +139,36 @@ def test_put_is_thread_safe() -> None:
         t.join()
     received, dropped = queue.counts()
     assert (received, dropped, len(queue)) == (6000, 5995, 5)
+
+
+def test_stamp_gaps_count_the_images_missing_between_received_stamps() -> None:
+    from owl_ros.scheduler import StampGaps
+
+    gaps = StampGaps()
+    period = 33 * MS
+    stamps = [k * period for k in range(6)]  # 0..5: regular
+    stamps += [8 * period, 9 * period]  # 6 and 7 missing
+    stamps += [9 * period + 50 * MS]  # 1.5 periods: counts as one (rounded, at least 1)
+    stamps += [9 * period + 60 * MS]  # a short interval (jitter) counts nothing
+    assert [gaps.see(s) for s in stamps] == [0, 0, 0, 0, 0, 0, 2, 0, 1, 0]
+    # too few intervals to judge: nothing counted after a restart
+    fresh = StampGaps()
+    assert [fresh.see(s) for s in (0, period, 5 * period)] == [0, 0, 0]
+    # a stamp going back (replay loop) or a pause beyond max_gap_ns starts over
+    assert gaps.see(0) == 0 and gaps.see(period) == 0 and gaps.see(10**12) == 0
+    assert gaps.see(None) == 0
+    # a camera switching from 30 to 15 Hz: counted until the median follows
+    switch = StampGaps(window=7)
+    t = [k * period for k in range(8)]
+    t += [t[-1] + 2 * period * (k + 1) for k in range(8)]
+    counted = [switch.see(s) for s in t]
+    assert sum(counted) == 4 and counted[-4:] == [0, 0, 0, 0]
+
+
+def test_queue_reports_missing_images_once() -> None:
+    queue = FrameQueue(2)
+    for k in (0, 1, 2, 3, 4, 6, 7):
+        queue.put(Frame.of(image(k * 40 * MS), k))
+    assert queue.missing() == 1
+    assert queue.missing() == 0
+    assert queue.counts() == (7, 5)  # unchanged: missing images were never received

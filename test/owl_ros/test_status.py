@@ -65,3 +65,27 @@ def test_problems_raise_the_level_and_are_named() -> None:
 def test_empty_window_rates_are_nan() -> None:
     inp, _, _ = build_status(_inputs(span_s=math.nan))
     assert math.isnan(float(inp.value_map()["image_rate_hz"]))
+
+
+def test_missing_images_warn_with_the_fast_dds_hint_only_for_large_images() -> None:
+    def input_record(missing: int, image_bytes: int) -> tuple[int, str, dict[str, str]]:
+        counts = Counters(images=60, imu=800, camera_info=60, images_missing=missing)
+        totals = Counters(images_missing=missing)
+        rec = build_status(_inputs(counts=counts, totals=totals, image_bytes=image_bytes))[0]
+        return rec.level, rec.message, dict(rec.values)
+
+    # 3 of 63 (4.8 %) is below the 5 % bound; 4 of 64 is above
+    level, message, values = input_record(3, 921_600)
+    assert level == Level.OK and message == "inputs OK"
+    assert values["images_missing_total"] == "3"
+    level, message, _ = input_record(4, 307_200)  # VGA mono8 fits the default segment
+    assert level == Level.WARN
+    assert message == (
+        "4 of 64 images missing between the received stamps (lost before the node: "
+        "camera driver or transport)"
+    )
+    level, message, _ = input_record(40, 921_600)  # 720p mono8 does not
+    assert level == Level.WARN
+    assert message.startswith("40 of 100 images missing")
+    assert "images of 900 KiB exceed Fast DDS's default 512 KiB" in message
+    assert "fastdds_large_images.xml" in message
