@@ -209,7 +209,7 @@ class OwlNode(Node):
         self._values = values
         self._lock = threading.Lock()
         self._inbox = Inbox()
-        self._pipeline = Pipeline(self.options, clock=time.monotonic_ns)
+        self._pipeline = Pipeline(self.options, clock=time.monotonic_ns, live=True)
         self._calibration_logged = False
         self._stop = threading.Event()
 

@@ -112,7 +112,8 @@ PARAMS: tuple[Param, ...] = (
         "int",
         2,
         "images waiting for processing, count; when full the oldest is dropped (newest "
-        "wins); 1 gives the lowest latency under overload, 2 rides out jitter",
+        "wins), and the node processes the newest frame the IMU already covers; more than "
+        "1 lets a frame wait for an IMU that arrives after the next image",
         low=1,
         high=100,
         read_only=True,

@@ -181,15 +181,21 @@ class Pipeline:
         options: node options (engine options included).
         clock: the current time, ns, on the clock of the arrival times the caller gives
             (default: monotonic time).
+        live: frames arrive in real time (the node): a newer frame the IMU covers
+            replaces older queued ones (``owl_ros.scheduler``); False (``owl_process``)
+            keeps every frame.
     """
 
     def __init__(
-        self, options: NodeOptions | None = None, clock: Callable[[], int] = time.monotonic_ns
+        self,
+        options: NodeOptions | None = None,
+        clock: Callable[[], int] = time.monotonic_ns,
+        live: bool = False,
     ) -> None:
         self.options = opts = options if options is not None else NodeOptions()
         #: the injected clock (read it; the scheduler shares it).
         self.clock = clock
-        self._scheduler = Scheduler(opts.queue_size, opts.imu_wait_s, clock)
+        self._scheduler = Scheduler(opts.queue_size, opts.imu_wait_s, clock, skip_stale=live)
         self._jumps = TimeJumps(round(opts.engine.max_frame_gap_s * 1e9))
         eng = opts.engine
         self._gyro = GyroBuffer(

@@ -16,6 +16,12 @@ the injected clock (the node: monotonic time; ``owl_process``: the bag's log tim
   silent, or the queue is full (the next frame is already there; capacity > 1).
 
 ``flush`` (end of a bag, shutdown) makes every frame ready.
+
+Live (``skip_stale``, the node): when the oldest frame is ready and the newest queued
+frame is already covered by the IMU, the older frames are dropped (counted with the full
+queue's drops) and the newest is processed: a node that fell behind processes the newest
+image instead of one that waited a whole engine time in the queue (``owl_latency``
+vga30: latency p50 101 -> 59 ms). ``owl_process`` keeps every frame.
 """
 
 from __future__ import annotations
@@ -161,6 +167,18 @@ class FrameQueue:
         with self._lock:
             return self._frames[0] if self._frames else None
 
+    def tail(self) -> Frame | None:
+        """The newest frame, or None."""
+        with self._lock:
+            return self._frames[-1] if self._frames else None
+
+    def drop_head(self, frame: Frame) -> None:
+        """Drop ``frame`` if it is still the oldest, counted as a drop (newest wins)."""
+        with self._lock:
+            if self._frames and self._frames[0] is frame:
+                self._frames.popleft()
+                self._dropped += 1
+
     def remove_head(self, frame: Frame) -> bool:
         """Remove ``frame`` if it is still the oldest (a put may have dropped it meanwhile)."""
         with self._lock:
@@ -202,11 +220,20 @@ class Scheduler:
         capacity: frames queued at most (``queue_size``).
         imu_wait_s: longest wait of a frame for its IMU (or camera_info), s.
         clock: the current time, ns, on the clock of the frames' arrival times.
+        skip_stale: live: process the newest frame the IMU covers, dropping older ones
+            (module docstring).
     """
 
-    def __init__(self, capacity: int, imu_wait_s: float, clock: Callable[[], int]) -> None:
+    def __init__(
+        self,
+        capacity: int,
+        imu_wait_s: float,
+        clock: Callable[[], int],
+        skip_stale: bool = False,
+    ) -> None:
         self.queue = FrameQueue(capacity)
         self.clock = clock
+        self.skip_stale = skip_stale
         self._wait_ns = round(imu_wait_s * 1e9)
 
     def configure(self, capacity: int, imu_wait_s: float) -> None:
@@ -244,8 +271,17 @@ class Scheduler:
             found = probe(frame)
             if not flush and not self.ready(frame, found, self.clock()):
                 return None
+            if self.skip_stale and not flush and self._newer_is_covered(frame, probe):
+                self.queue.drop_head(frame)
+                continue
             if self.queue.remove_head(frame):
                 return frame, found
+
+    def _newer_is_covered(self, frame: Frame, probe: Callable[[Frame], Probe]) -> bool:
+        newest = self.queue.tail()
+        if newest is None or newest is frame or newest.stamp_ns is None:
+            return False
+        return probe(newest).covered
 
     def deadline_ns(self) -> int | None:
         """When the oldest queued frame stops waiting (clock time, ns), or None."""

@@ -172,3 +172,30 @@ def test_queue_reports_missing_images_once() -> None:
     assert queue.missing() == 1
     assert queue.missing() == 0
     assert queue.counts() == (7, 5)  # unchanged: missing images were never received
+
+
+def test_live_scheduler_processes_the_newest_covered_frame() -> None:
+    # Two frames wait while the worker was busy; both are covered by the IMU. Live, the
+    # older is dropped (counted) and the newest processed; offline both are, in order.
+    for skip_stale, expect in ((True, [20 * MS]), (False, [10 * MS, 20 * MS])):
+        clock = Clock()
+        sched = Scheduler(2, WAIT_S, clock, skip_stale=skip_stale)
+        sched.put(image(10 * MS), 0)
+        sched.put(image(20 * MS), 1)
+        taken = []
+        while (got := sched.take(lambda f: COVERED)) is not None:
+            taken.append(got[0].stamp_ns)
+        assert taken == expect
+        assert sched.queue.counts() == (2, 2 - len(expect))
+    # the newest not yet covered: the ready older frame is processed
+    sched = Scheduler(2, WAIT_S, Clock(), skip_stale=True)
+    sched.put(image(10 * MS), 0)
+    sched.put(image(20 * MS), 1)
+    probes = {10 * MS: COVERED, 20 * MS: WAITING}
+    got = sched.take(lambda f: probes[f.stamp_ns])
+    assert got is not None and got[0].stamp_ns == 10 * MS
+    # flush keeps every frame
+    sched = Scheduler(2, WAIT_S, Clock(), skip_stale=True)
+    sched.put(image(10 * MS), 0)
+    sched.put(image(20 * MS), 1)
+    assert sched.take(lambda f: COVERED, flush=True)[0].stamp_ns == 10 * MS
