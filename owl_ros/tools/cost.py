@@ -4,9 +4,12 @@ Runs :class:`owl_core.engine.OwlEngine` alone (no baselines, no DDS) over one re
 scenario (the ``owl_bench`` frame cache is shared) once per setting, one thread, and
 times every stage in the process's CPU time (``time.process_time``: independent of other
 load on the machine). Prints a table (``--json`` for one object) and, with ``--plot``,
-writes a PNG with ms/frame against tracked features and against megapixels.
+writes a PNG with ms/frame against tracked features and against megapixels. ``--runs N``
+measures every setting N times (interleaved: all settings, then again) and reports each
+figure's median over the runs (CPU time still varies by +-15 % from run to run on a shared
+VM).
 
-    python -m owl_ros.tools.cost --plot docs/images/cost.png
+    python -m owl_ros.tools.cost --runs 3 --plot docs/images/cost.png
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from owl_core.types import ImageFrame
 from owl_ros.tools import bench
@@ -87,6 +92,21 @@ def plot(
     plt.close(fig)
 
 
+def median_rows(runs: Sequence[Sequence[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Per setting, the median over ``runs`` (each a list of :func:`measure` rows in the
+    same order) of the tracked features and of every stage's ms per frame."""
+    out = []
+    for rows in zip(*runs, strict=True):
+        first = dict(rows[0])
+        first["tracked_per_frame"] = float(np.median([r["tracked_per_frame"] for r in rows]))
+        first["ms_per_frame"] = {
+            k: float(np.median([r["ms_per_frame"][k] for r in rows])) for k in STAGES
+        }
+        first["runs"] = len(rows)
+        out.append(first)
+    return out
+
+
 def _size(text: str) -> tuple[int, int]:
     w, _, h = text.partition("x")
     if not (w.isdigit() and h.isdigit()) or int(w) < 32 or int(h) < 32:
@@ -97,7 +117,7 @@ def _size(text: str) -> tuple[int, int]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: measure the two series, print them, optionally plot."""
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
-    p.add_argument("--scenario", default="street")
+    p.add_argument("--scenario", default="street", help="scenario (owl_make_bag --list)")
     p.add_argument("--features", type=int, nargs="*", default=[250, 500, 1000, 2000])
     p.add_argument(
         "--sizes", type=_size, nargs="*", default=[(320, 240), (640, 480), (960, 540), (1280, 720)]
@@ -107,13 +127,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--cache-dir", default="results/cache")
     p.add_argument("--plot", default=None, help="write the PNG here")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--runs", type=int, default=1, help="runs per setting; medians reported")
     args = p.parse_args(argv)
     if any(f < 1 for f in args.features):
         p.error(f"--features must be positive, got {args.features}")
+    if args.runs < 1:
+        p.error(f"--runs must be >= 1, got {args.runs}")
     one_thread()
     cache = Path(args.cache_dir)
-    by_features = [measure(args.scenario, 640, 480, f, args.seconds, cache) for f in args.features]
-    by_size = [measure(args.scenario, w, h, 1000, args.size_seconds, cache) for w, h in args.sizes]
+    runs_f, runs_s = [], []
+    for _ in range(args.runs):
+        runs_f.append(
+            [measure(args.scenario, 640, 480, f, args.seconds, cache) for f in args.features]
+        )
+        runs_s.append(
+            [measure(args.scenario, w, h, 1000, args.size_seconds, cache) for w, h in args.sizes]
+        )
+    by_features, by_size = median_rows(runs_f), median_rows(runs_s)
     if args.json:
         print(json.dumps({"features": by_features, "sizes": by_size}))
     else:

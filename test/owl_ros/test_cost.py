@@ -29,3 +29,15 @@ def test_size_argument() -> None:
     assert cost._size("640x480") == (640, 480)
     with pytest.raises(argparse.ArgumentTypeError, match="WxH"):
         cost._size("640")
+
+
+def test_median_rows_per_setting_and_stage() -> None:
+    def row(total: float, tracked: float) -> dict:
+        ms = dict.fromkeys(cost.STAGES, 1.0) | {"total": total}
+        return {"size": "64x48", "features": 10, "tracked_per_frame": tracked, "ms_per_frame": ms}
+
+    runs = [[row(30.0, 9), row(5.0, 1)], [row(10.0, 7), row(6.0, 3)], [row(20.0, 8), row(4.0, 2)]]
+    med = cost.median_rows(runs)
+    assert [r["ms_per_frame"]["total"] for r in med] == [20.0, 5.0]
+    assert [r["tracked_per_frame"] for r in med] == [8.0, 2.0]
+    assert med[0]["runs"] == 3 and med[0]["ms_per_frame"]["lk"] == 1.0
