@@ -600,7 +600,8 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
 
 def summary_notes(summary: Summary, opts: ProcessOptions) -> list[str]:
     """Lines after a run: why frames had no points (counts per reason, one line), what to
-    do about a missing IMU, and the identity extrinsic when none was given or found."""
+    do about a missing IMU, images missing between the recorded stamps, and the identity
+    extrinsic when none was given or found."""
     notes = []
     if summary.reasons:
         ranked = sorted(summary.reasons.items(), key=lambda kv: (-kv[1], kv[0]))
@@ -617,6 +618,12 @@ def summary_notes(summary: Summary, opts: ProcessOptions) -> list[str]:
                 f"later in the bag than the next image): keep them waiting with "
                 f"-p queue_size:={max(2 * queue, 4)} (now {queue})"
             )
+    missing = summary.counts.get("images_missing", 0)
+    if missing:
+        notes.append(
+            f"{missing} images missing between the recorded image stamps (lost before the "
+            f"recorder: camera driver or transport; {summary.images} in the bag)"
+        )
     if summary.extrinsic_source == "default":
         notes.append(
             "warning: no camera-IMU rotation given and none in /tf_static: used the identity; "

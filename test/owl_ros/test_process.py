@@ -477,6 +477,21 @@ def test_identity_extrinsic_is_said_with_how_to_set_it(result: tuple[Path, Any])
     assert "--camera-to-imu-rotation-xyzw X,Y,Z,W" in note and "TF" in note
 
 
+def test_images_missing_in_the_recording_are_said(result: tuple[Path, Any]) -> None:
+    from dataclasses import replace
+
+    summary = result[1]
+    assert summary.counts["images_missing"] == 0  # the rendered bag has every frame
+    assert not [n for n in process.summary_notes(summary, ProcessOptions()) if "missing" in n]
+    counts = {**summary.counts, "images_missing": 7}
+    notes = process.summary_notes(replace(summary, counts=counts), ProcessOptions())
+    (note,) = [n for n in notes if "missing" in n]
+    assert note == (
+        f"7 images missing between the recorded image stamps (lost before the recorder: "
+        f"camera driver or transport; {summary.images} in the bag)"
+    )
+
+
 def test_no_time_estimate_from_the_first_messages() -> None:
     # the "~81 s left" of a 1.4 s run: 0.3 s for the first 0.4 % (imports, engine start)
     assert process.eta_text(0.3, 0.004) == ""
