@@ -49,8 +49,9 @@ from owl_ros.tools.live import LiveNode
 PROG = "owl_latency"
 #: measure()'s default warm-up before the window, s.
 WARMUP_S = 2.0
-#: The node counters read from ``/diagnostics`` (see :class:`Measurement`).
-_COUNTERS = (
+#: The node figures read from ``/diagnostics``: three counters and the engine time (see
+#: :class:`Measurement`).
+_DIAGNOSTIC_KEYS = (
     "images_total",
     "dropped_queue_full_total",
     "frames_processed_total",
@@ -251,7 +252,7 @@ def measure(
             kv.key: float(kv.value)
             for status in msg.status
             for kv in status.values
-            if kv.key in _COUNTERS
+            if kv.key in _DIAGNOSTIC_KEYS
         }
         if found:
             snapshots.append((time.time_ns(), found))
