@@ -21,7 +21,7 @@ Live (``skip_stale``, the node): when the oldest frame is ready and the newest q
 frame is already covered by the IMU, the older frames are dropped (counted with the full
 queue's drops) and the newest is processed: a node that fell behind processes the newest
 image instead of one that waited a whole engine time in the queue (``owl_latency``
-vga30: latency p50 101 -> 59 ms). ``owl_process`` keeps every frame.
+vga30: latency p50 101 -> 63 ms). ``owl_process`` keeps every frame.
 """
 
 from __future__ import annotations
