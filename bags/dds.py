@@ -21,8 +21,16 @@ import os
 from collections.abc import MutableMapping
 from pathlib import Path
 
-__all__ = ["PROFILE_XML", "SEGMENT_BYTES", "prefer_large_image_profile", "profile_path"]
+__all__ = [
+    "DEFAULT_SEGMENT_BYTES",
+    "PROFILE_XML",
+    "SEGMENT_BYTES",
+    "prefer_large_image_profile",
+    "profile_path",
+]
 
+#: Fast DDS's default shared-memory segment, bytes: larger samples go over UDP.
+DEFAULT_SEGMENT_BYTES = 512 * 1024
 #: Shared-memory segment of the profile, bytes.
 SEGMENT_BYTES = 16 * 1024 * 1024
 

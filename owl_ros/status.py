@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from bags.dds import DEFAULT_SEGMENT_BYTES
 from msg_adapters.diagnostics import Level, StatusRecord
 from owl_core.calib_check import MonitorVerdict
 from owl_ros.counters import Counters
@@ -25,8 +26,6 @@ DIAG_PREFIX = "owl"
 #: ``owl: input`` warns when more than this share of the window's images is missing
 #: between the received stamps.
 MISSING_IMAGES_WARN = 0.05
-#: Fast DDS's default shared-memory segment, bytes: larger samples go over UDP.
-FAST_DDS_SHM_SEGMENT_BYTES = 512 * 1024
 
 
 def _percentile(values: Sequence[float], q: float) -> float:
@@ -140,7 +139,7 @@ def _missing_images_text(missing: int, received: int, image_bytes: int) -> str:
         f"{missing} of {missing + received} images missing between the received stamps "
         "(lost before the node: camera driver or transport)"
     )
-    if image_bytes > FAST_DDS_SHM_SEGMENT_BYTES:
+    if image_bytes > DEFAULT_SEGMENT_BYTES:
         text += (
             f"; images of {image_bytes / 1024:.0f} KiB exceed Fast DDS's default 512 KiB "
             "shared-memory segment and go over UDP: give the camera driver "

@@ -244,7 +244,7 @@ def measure(
         on_cloud,
         QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE),
     )
-    # the node's counters (``*_total`` in /diagnostics) with their arrival times
+    # the node's figures of _DIAGNOSTIC_KEYS in /diagnostics, with their arrival times
     snapshots: list[tuple[int, dict[str, float]]] = []
 
     def on_diagnostics(msg: Any) -> None:
