@@ -41,7 +41,7 @@ from owl_core import rolling_shutter as rs
 from owl_core import time_offset as to
 from owl_core.camera import CameraModel
 from owl_core.errors import InvalidInputError
-from owl_core.geometry import quat_xyzw_to_matrix, so3_log
+from owl_core.geometry import quat_xyzw_to_matrix, so3_exp, so3_log
 from owl_core.gyro import GyroBuffer
 from owl_core.tracker import FeatureTracker, TrackerOptions, Tracks
 from owl_core.types import FrameResult, GyroSamples, ImageFrame, PointFlag
@@ -55,6 +55,9 @@ __all__ = ["EngineOptions", "OwlEngine"]
 TIME_OFFSET_SIGMA_S = 0.05
 #: The online offset estimate replaces the configured one once its 1-sigma is below this, s.
 TIME_OFFSET_APPLY_SIGMA_S = 0.005
+#: ``observe_time_offset`` (the live calibration check) feeds the offset filter every this
+#: many frames: the filter's heading fit costs about 5 ms per 640x480 frame.
+OBSERVE_STRIDE = 3
 #: 1-sigma of the prior on the leftover rotation in the offset filter's own heading fit
 #: (wide: the leftover of a 50 ms offset at 3 rad/s^2 is 0.15 rad/s), rad/s.
 _OFFSET_LEFTOVER_PRIOR = 0.5
@@ -78,6 +81,12 @@ class EngineOptions:
             from ``imu_time_offset_s``, 1-sigma :data:`TIME_OFFSET_SIGMA_S`; applied once
             its 1-sigma is below :data:`TIME_OFFSET_APPLY_SIGMA_S`, together with the bias
             estimated jointly with it). Off: the offset stays.
+        observe_time_offset: run the same online filter without applying anything
+            (derotation keeps the configured offset and rotation; outputs are unchanged),
+            on every :data:`OBSERVE_STRIDE`-th frame; it also estimates the error of the
+            configured rotation. :attr:`OwlEngine.online_calibration` gives both to the
+            live calibration check (:mod:`owl_core.calib_check`). Implied by
+            ``estimate_time_offset``.
         require_gyro: True: frames without gyro coverage produce no points (reason given).
             False: they are processed without derotation (the leftover rotation is then
             estimated from the flow alone) and every point is flagged NO_GYRO (and IMU_GAP
@@ -164,6 +173,7 @@ class EngineOptions:
     imu_time_offset_s: float = 0.0
     rolling_shutter_readout_s: float = 0.0
     estimate_time_offset: bool = False
+    observe_time_offset: bool = False
     require_gyro: bool = True
     max_features: int = 1000
     tracker: TrackerOptions = field(default_factory=TrackerOptions)
@@ -598,13 +608,21 @@ class OwlEngine:
                     initial_sigma_s=TIME_OFFSET_SIGMA_S,
                     bias_sigma=opts.bias_initial_sigma,
                     bias_random_walk=opts.bias_random_walk,
-                    inflation=opts.bias_inflation,
+                    # observing, every OBSERVE_STRIDE-th frame: its fit window shares fewer
+                    # frames with the previous one
+                    inflation=(
+                        opts.bias_inflation
+                        if opts.estimate_time_offset
+                        else max(1.0, opts.bias_inflation / OBSERVE_STRIDE)
+                    ),
                 ),
             )
-            if opts.estimate_time_offset
+            if opts.estimate_time_offset or opts.observe_time_offset
             else None
         )
         self._offset_rng = np.random.default_rng(opts.seed + 1)
+        self._offset_frames = 0
+        self._offset_prev_ns: int | None = None
         self._last_tracks: Tracks | None = None
         self.frames = 0
 
@@ -647,7 +665,17 @@ class OwlEngine:
     def imu_time_offset_sigma_s(self) -> float:
         """1-sigma of the online offset estimate, s (NaN when not estimated)."""
         f = self._offset_filter
-        return f.offset_sigma_s if f is not None else math.nan
+        return (
+            f.offset_sigma_s if f is not None and self.options.estimate_time_offset else (math.nan)
+        )
+
+    @property
+    def online_calibration(self) -> to.OnlineCalibration | None:
+        """The online offset filter's estimates (offset and extrinsic rotation error),
+        whether applied or only observed (``estimate_time_offset`` or
+        ``observe_time_offset``); None when it does not run."""
+        f = self._offset_filter
+        return f.snapshot() if f is not None else None
 
     @property
     def readout_ns(self) -> int:
@@ -699,6 +727,8 @@ class OwlEngine:
             if self._offset_filter is not None:
                 self._offset_filter.reset()
                 self._offset_rng = np.random.default_rng(self.options.seed + 1)
+                self._offset_frames = 0
+                self._offset_prev_ns = None
                 self._set_imu_time_offset(self.options.imu_time_offset_s)
 
     def _history_bearings(
@@ -1365,7 +1395,12 @@ class OwlEngine:
         filt = self._offset_filter
         if filt is None or not integ.with_gyro or tracked.prev_ns is None:
             return ()
-        filt.predict(max(stamp - tracked.prev_ns, 0) * 1e-9)
+        self._offset_frames += 1
+        if not self.options.estimate_time_offset and self._offset_frames % OBSERVE_STRIDE:
+            return ()
+        since = self._offset_prev_ns if self._offset_prev_ns is not None else tracked.prev_ns
+        filt.predict(max(stamp - since, 0) * 1e-9)
+        self._offset_prev_ns = stamp
         used = self._gyro.imu_time_offset_ns
         model = self._offset_model(integ.stamps, stamp, tracked.bias, filt.offset_s - used * 1e-9)
         wide = np.eye(3) * _OFFSET_LEFTOVER_PRIOR**2
@@ -1380,7 +1415,7 @@ class OwlEngine:
         )
         info = np.linalg.inv(est.rotation_cov) - np.linalg.inv(wide)
         if model is not None and est.translating and np.all(np.linalg.eigvalsh(info) > 0):
-            offset_leftover, jacobian, delta = model
+            offset_leftover, jacobian, delta, by_phi = model
             bias_cam = self._r_ci.T @ tracked.bias
             filt.update(
                 est.rotation_error,
@@ -1389,8 +1424,11 @@ class OwlEngine:
                 jacobian,
                 used * 1e-9 + delta,
                 bias_cam,
+                None if self.options.estimate_time_offset else by_phi,
             )
-            if filt.offset_sigma_s < TIME_OFFSET_APPLY_SIGMA_S:
+            if self.options.estimate_time_offset and filt.offset_sigma_s < (
+                TIME_OFFSET_APPLY_SIGMA_S
+            ):
                 self._apply_time_offset(filt)
         return (("time_offset", self.clock() - t0),)
 
@@ -1406,20 +1444,25 @@ class OwlEngine:
         then keep it from unlearning. On ``brisk`` with the offset right the heading median
         goes 0.24 -> 0.27 deg with this; with a 30 ms offset, 0.39 deg (14 deg without)."""
         self._set_imu_time_offset(filt.offset_s)
-        self._bias.bias = self._r_ci @ filt.x[1:]
-        self._bias.cov = self._r_ci @ filt.cov[1:, 1:] @ self._r_ci.T
+        self._bias.bias = self._r_ci @ filt.bias_camera
+        self._bias.cov = self._r_ci @ filt.cov[1:4, 1:4] @ self._r_ci.T
 
     def _offset_model(
         self, stamps: npt.NDArray[np.int64], stamp: int, bias: FloatArray, delta_s: float
-    ) -> tuple[FloatArray, FloatArray, float] | None:
+    ) -> tuple[FloatArray, FloatArray, float, FloatArray] | None:
         """The leftover rotation an offset ``delta_s`` (s) above the one in use would leave
         in this frame, and its derivative: the slope over the fit window of the rotation by
         which each column's derotation changes (:mod:`owl_core.time_offset`), from the gyro
         with the camera times shifted by delta (exact, not linearised) and by delta - 1 ms.
 
+        Also the leftover a small error ``phi`` of the configured extrinsic rotation would
+        leave (the true one ``R_ci Exp(phi)``: each gyro rotation in the camera frame is
+        conjugated by ``Exp(phi)``), as its (3, 3) derivative by ``phi`` at 0.
+
         Returns ((3,) leftover rad/s, (3,) d leftover / d offset rad/s per s, the delta
-        used, s), linearised at a delta the gyro covers (0 when the IMU does not reach
-        ``stamp + delta`` yet); None without 3 columns covered.
+        used s, (3, 3) d leftover / d phi rad/s per rad), linearised at a delta the gyro
+        covers (0 when the IMU does not reach ``stamp + delta`` yet); None without 3
+        columns covered.
         """
         cols = stamps[stamps >= 0]
         step = 1_000_000  # ns, the numerical derivative's step (backwards: IMU we have)
@@ -1432,15 +1475,21 @@ class OwlEngine:
         tau = (cols - stamp) * 1e-9
         dt = tau - tau.mean()
 
-        def leftover(shift: int) -> FloatArray:
-            moved = self._gyro.relative_rotations(cols + shift, stamp + shift, bias)
-            phi = so3_log(moved @ np.swapaxes(base, -1, -2))
-            out: FloatArray = (dt @ phi) / float(dt @ dt)
+        base_t = np.swapaxes(base, -1, -2)
+
+        def rate(moved: FloatArray) -> FloatArray:
+            out: FloatArray = (dt @ so3_log(moved @ base_t)) / float(dt @ dt)
             return out
+
+        def leftover(shift: int) -> FloatArray:
+            return rate(self._gyro.relative_rotations(cols + shift, stamp + shift, bias))
 
         at = leftover(delta) if delta else np.zeros(3)
         slope = (at - leftover(delta - step)) / (step * 1e-9)
-        return at, slope, delta * 1e-9
+        eps = 1e-3  # rad, the numerical derivative's step
+        turns = [so3_exp(eps * axis) for axis in np.eye(3)]
+        by_phi = np.stack([rate(t.T @ base @ t) / eps for t in turns], axis=1)
+        return at, slope, delta * 1e-9, by_phi
 
     def _rates_at_bearing_time(self, integ: _Integrated, headed: _Headed) -> FloatArray:
         """The rates ``f`` (N, 3), 1/s, at the time of their bearings.

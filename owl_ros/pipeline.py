@@ -46,7 +46,7 @@ import collections
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -255,6 +255,8 @@ class Pipeline:
             self._engine = None
             return
         eng = self.options.engine
+        if self.options.calibration_check:  # the check reads the online offset estimate
+            eng = replace(eng, observe_time_offset=True)
         self._engine = OwlEngine(self._camera, eng, gyro=self._gyro)
         self._calibration = self._calibration_monitor()
 
@@ -276,11 +278,9 @@ class Pipeline:
         old = self.options
         self.options = options
         self._jumps.tolerance_ns = round(options.engine.max_frame_gap_s * 1e9)
-        if options.engine != old.engine:
+        if options.engine != old.engine or options.calibration_check != old.calibration_check:
             self._rebuild_engine()
             self.totals.reconfigured += 1
-        elif options.calibration_check != old.calibration_check:
-            self._calibration = self._calibration_monitor()
         self._scheduler.configure(options.queue_size, options.imu_wait_s)
 
     def _time_jump(self, jump: Jump) -> None:
@@ -561,10 +561,14 @@ class Pipeline:
         self._jumps.image_processed(stamp)
         self._last_result = result
         if self._calibration is not None:  # images vs gyro (owl_core.calib_check)
+            online = engine.online_calibration
+            if online is not None:  # the monitor refers each image to its middle row
+                online = replace(online, offset_s=online.offset_s + 0.5e-9 * engine.readout_ns)
             self._calibration.update(
                 engine.last_tracks,
                 GyroSamples(self._gyro.stamps_ns, self._gyro.rates_imu),
                 engine.gyro_bias,
+                online,
             )
         if not covered:
             self.totals.frames_imu_not_covered += 1

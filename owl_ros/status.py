@@ -291,6 +291,8 @@ def _calibration_values(verdict: MonitorVerdict | None) -> dict[str, object]:
         "calibration_ok": not verdict.disagrees,
         "calibration_angle_deg": verdict.angle_deg,
         "calibration_offset_s": verdict.offset_s,
+        "calibration_offset_sigma_s": verdict.offset_sigma_s,
+        "calibration_source": verdict.source,
     }
     if verdict.rotation_xyzw is not None:
         out["calibration_rotation_xyzw"] = (

@@ -407,11 +407,16 @@ def test_calibration_check_switch(feed: Feed) -> None:
     pipe = make(options(feed, calibration_check=False))
     run(pipe, events(feed, images=feed.images[:3]), flush=True)
     assert pipe._calibration is None
+    assert pipe.engine is not None and pipe.engine.online_calibration is None
     engine = pipe.engine
-    pipe.reconfigure(replace(pipe.options, calibration_check=True))  # at runtime
-    assert pipe._calibration is not None and pipe.engine is engine
+    # at runtime: the engine is rebuilt with its offset filter observing, for the check
+    pipe.reconfigure(replace(pipe.options, calibration_check=True))
+    assert pipe._calibration is not None and pipe.engine is not engine
+    assert pipe.engine.online_calibration is not None
+    assert pipe.engine.imu_time_offset_s == 0.0  # observed, not applied
     pipe.reconfigure(replace(pipe.options, calibration_check=False))
     assert pipe._calibration is None and pipe.calibration_verdict is None
+    assert pipe.engine.online_calibration is None
     # with a rolling shutter the check's images refer to their middle row on average
     pipe = make(options(feed, imu_time_offset=0.01, rolling_shutter_readout_s=0.03))
     run(pipe, events(feed, images=feed.images[:2]), flush=True)
