@@ -20,7 +20,11 @@ Every frame the tracker
 3. detects new corners (``cv2.goodFeaturesToTrack``, Shi-Tomasi) away from the
    surviving features (``min_distance_px``) whenever fewer than
    ``redetect_below * max_features`` remain, spread over a ``grid_cols x
-   grid_rows`` grid so each cell gets about its share.
+   grid_rows`` grid so each cell gets about its share. With ``background_detection``
+   this runs on a helper thread after :meth:`FeatureTracker.track` returns, and the
+   corners join the tracks at the start of the next call (before the history shifts,
+   so they are tracked from this image exactly as before): a new corner has one
+   position, no flow, so nothing computed for this frame would have used it.
 
 Bookkeeping (ids, ages, the history of the last ``history_len`` positions) is
 vectorised numpy; there is no Python loop over features.
@@ -33,6 +37,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TypeVar
 
@@ -120,6 +125,10 @@ class TrackerOptions:
             features (reason ``crowded``), so features that converge (receding
             camera) make room for new ones where the image emptied; 0 disables.
         history_len: number of positions kept per track (current one included, >= 2).
+        background_detection: detect new corners on a helper thread, overlapping the
+            caller's work on this frame; they appear in the next frame's tracks (the
+            tracks of every later frame are the same as without it). For a live node
+            with a second core; the CPU time is the same.
     """
 
     max_features: int = 1000
@@ -142,6 +151,7 @@ class TrackerOptions:
     redetect_below: float = 0.95
     max_cell_share: float = 3.0
     history_len: int = 8
+    background_detection: bool = False
     lk_predict_velocity: bool = False
 
     def __post_init__(self) -> None:
@@ -207,7 +217,8 @@ class Tracks:
         history: (N, H, 2) float64 past positions, ``[:, 0]`` = current,
             ``[:, k]`` = k frames ago; NaN where the track did not exist.
         stamps_ns: (H,) int64 stamps of those frames, nanoseconds (-1 if none).
-        num_detected: features newly detected in this frame.
+        num_detected: features that started a track in this frame (with
+            ``background_detection``: detected in the previous image, joining now).
         num_lost: features lost in this frame.
         lost_ids: (num_lost,) uint32 ids of the features lost in this frame.
         lost_by_reason: counts of lost features per reason (``LOST_REASONS``):
@@ -251,6 +262,7 @@ class FeatureTracker:
         #: clock of :attr:`Tracks.timings`, s (``time.thread_time`` for CPU time)
         self.clock: Callable[[], float] = time.perf_counter
         self._next_id = 0
+        self._executor: ThreadPoolExecutor | None = None
         self.reset()
 
     def reset(self) -> None:
@@ -265,6 +277,9 @@ class FeatureTracker:
         # per track: the rotational part of the last frame's predicted displacement (NaN
         # where there was no prediction), pixels
         self._rot_disp = np.zeros((0, 2), dtype=np.float64)
+        # background_detection: corners (K, 2) of the previous image being detected, and
+        # the seconds it took (a detection still running is discarded: pure function)
+        self._pending: Future[tuple[FloatArray, float]] | None = None
 
     @property
     def num_tracks(self) -> int:
@@ -309,6 +324,11 @@ class FeatureTracker:
             lost_ids = self._ids.copy()
             lost_by_reason["reset"] = lost_ids.shape[0]
             self.reset()
+        num_detected = 0
+        if self._pending is not None:  # the previous image's corners join before the shift
+            corners, timings["detect"] = self._pending.result()
+            self._pending = None
+            num_detected = self._add_features(corners)
 
         # Shift the history by one frame; column 0 is filled below.
         self._stamps = np.concatenate([[stamp], self._stamps[:-1]])
@@ -345,26 +365,43 @@ class FeatureTracker:
             self._ids = self._ids[keep]
             self._ages = self._ages[keep] + 1
 
-        num_detected = 0
         if self._ids.shape[0] < opts.redetect_below * opts.max_features:
-            t0 = self.clock()
-            corners = self._detect(img, self._history[:, 0])
-            timings["detect"] = self.clock() - t0
-            num_detected = corners.shape[0]
-            new_hist = np.full((num_detected, opts.history_len, 2), np.nan)
-            new_hist[:, 0] = corners
-            self._history = np.concatenate([self._history, new_hist])
-            new_ids = (self._next_id + np.arange(num_detected)).astype(np.uint32)
-            self._next_id += num_detected
-            self._ids = np.concatenate([self._ids, new_ids])
-            self._rot_disp = np.concatenate([self._rot_disp, np.full((num_detected, 2), np.nan)])
-            self._ages = np.concatenate([self._ages, np.zeros(num_detected, dtype=np.int32)])
+            existing = self._history[:, 0].copy()
+            if opts.background_detection:
+                if self._executor is None:
+                    self._executor = ThreadPoolExecutor(1, thread_name_prefix="owl-detect")
+                self._pending = self._executor.submit(self._timed_detect, img, existing)
+            else:
+                corners, timings["detect"] = self._timed_detect(img, existing)
+                num_detected = self._add_features(corners)
 
         self._prev = img
         self._shape = (int(img.shape[0]), int(img.shape[1]))
         return self._snapshot(num_detected, lost_ids, lost_by_reason, timings)
 
     # ---------------------------------------------------------------- helpers
+
+    def _timed_detect(
+        self, img: npt.NDArray[np.uint8], existing: FloatArray
+    ) -> tuple[FloatArray, float]:
+        """New corners (K, 2) of ``img`` away from ``existing`` (M, 2), and the seconds
+        it took (this thread's clock)."""
+        t0 = self.clock()
+        corners = self._detect(img, existing)
+        return corners, self.clock() - t0
+
+    def _add_features(self, corners: FloatArray) -> int:
+        """Start a track at each corner (K, 2) of the current image; returns K."""
+        k = int(corners.shape[0])
+        new_hist = np.full((k, self.options.history_len, 2), np.nan)
+        new_hist[:, 0] = corners
+        self._history = np.concatenate([self._history, new_hist])
+        new_ids = (self._next_id + np.arange(k)).astype(np.uint32)
+        self._next_id += k
+        self._ids = np.concatenate([self._ids, new_ids])
+        self._rot_disp = np.concatenate([self._rot_disp, np.full((k, 2), np.nan)])
+        self._ages = np.concatenate([self._ages, np.zeros(k, dtype=np.int32)])
+        return k
 
     def _snapshot(
         self,

@@ -5,6 +5,8 @@ homography-warped image is rendered exactly (no interpolation error): only
 8-bit quantisation separates the images from the ideal.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -281,6 +283,32 @@ def test_ids_history_and_replenishment() -> None:
             assert np.all(tr.ids[new] > prev.ids.max())
         prev = tr
     assert np.max(prev.ages) == 7
+
+
+def test_background_detection_gives_the_same_tracks_a_frame_later() -> None:
+    """The corners of image k, detected on the helper thread, join at the start of frame
+    k+1: from then on every track (ids, ages, positions, history) is what the synchronous
+    tracker gives; image k's tracks lack only its new corners (one position each)."""
+    opts = TrackerOptions(max_features=300, history_len=4, redetect_below=1.0)
+    images = [_shifted(np.array([-9.0 * k, 2.0 * k])) for k in range(6)]
+    sync = FeatureTracker(opts)
+    bg = FeatureTracker(replace(opts, background_detection=True))
+    prev_new = 0
+    for k, img in enumerate(images):
+        a, b = sync.track(img, 100 + k), bg.track(img, 100 + k)
+        old = a.ages > 0  # the synchronous tracker's tracks except this image's new ones
+        np.testing.assert_array_equal(b.ids, a.ids[old])
+        np.testing.assert_array_equal(b.ages, a.ages[old])
+        np.testing.assert_array_equal(b.history, a.history[old])
+        if k == 0:  # the first image's corners are still being detected
+            assert b.num_tracks == 0 and b.num_detected == 0
+        else:  # those that joined now were detected in the previous image
+            assert b.num_detected == prev_new and b.num_detected > 0
+            assert b.timings["detect"] > 0
+        prev_new = a.num_detected
+    assert bg.num_tracks < sync.num_tracks  # the last image's corners still pending
+    bg.reset()  # a pending detection is dropped with the tracks
+    assert bg.num_tracks == 0 and bg.track(images[0], 0).num_tracks == 0
 
 
 def test_detection_is_spread_and_spaced() -> None:
