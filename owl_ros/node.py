@@ -4,7 +4,8 @@ A thin node: everything is created in ``__init__``; the subscription callbacks n
 block: an image goes straight into the pipeline's one bounded frame queue (newest wins,
 :mod:`owl_ros.scheduler`), every other message into the node's :class:`Inbox`; one worker
 thread owns the :class:`~owl_ros.pipeline.Pipeline` (engine, IMU buffer), hands it the
-inbox's messages in order, processes frames and publishes. Topics, parameters and
+inbox's messages in order, processes frames and publishes (the engine's tracker detects
+new corners on a helper thread of its own while the worker estimates the frame). Topics, parameters and
 diagnostics are described in ``docs`` / contract.md and ``config/owl.yaml``; every
 parameter is declared from the one table in :mod:`owl_ros.params`.
 
