@@ -332,14 +332,20 @@ def test_truncated_bag_keeps_readable_part(
 # --- live camera-IMU calibration check (owl_core.calib_check through the pipeline) ------
 
 
+def _small_bag(out: Path, scenario: str, *extra: str) -> Path:
+    """``out``: 2.2 s of ``scenario`` at WIDTH x HEIGHT (more owl_make_bag options:
+    ``extra``)."""
+    args = [scenario, str(out), "--seconds", "2.2", "--width", str(WIDTH)]
+    args += ["--height", str(HEIGHT), "--supersample", "1", *extra, "--quiet"]
+    assert make_bag.main(args) == 0
+    return out
+
+
 @pytest.fixture(scope="module")
 def lagging_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """handheld (walking while turning about three axes), IMU 40 ms behind the images."""
     out = tmp_path_factory.mktemp("calib_check") / "handheld"
-    args = ["handheld", str(out), "--seconds", "2.2", "--width", str(WIDTH)]
-    args += ["--height", str(HEIGHT), "--supersample", "1", "--time-offset", "0.04"]
-    assert make_bag.main([*args, "--quiet"]) == 0
-    return out
+    return _small_bag(out, "handheld", "--time-offset", "0.04")
 
 
 def calibration_warnings(path: Path, start_ns: int) -> list[tuple[float, str, dict[str, str]]]:
@@ -391,10 +397,7 @@ def test_calibration_check_warns_within_two_seconds(
 def slight_lag_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """handheld, IMU 10 ms behind the images: below what the window can tell."""
     out = tmp_path_factory.mktemp("calib_check_10ms") / "handheld"
-    args = ["handheld", str(out), "--seconds", "2.2", "--width", str(WIDTH)]
-    args += ["--height", str(HEIGHT), "--supersample", "1", "--time-offset", "0.01"]
-    assert make_bag.main([*args, "--quiet"]) == 0
-    return out
+    return _small_bag(out, "handheld", "--time-offset", "0.01")
 
 
 def _mount_turned(bag: Path, degrees: float) -> str:
@@ -447,9 +450,7 @@ def test_calibration_check_stays_quiet_while_driving_fast(tmp_path: Path, scenar
     """3-8 m/s with the calibration right: translation leaks into the window's rotation
     fits (on these bags it read 7-98 deg and 41-104 ms off, and warned); the online
     estimate, which fits translation jointly, judges and stays OK."""
-    bag = tmp_path / scenario
-    args = [scenario, str(bag), "--seconds", "2.2", "--width", str(WIDTH)]
-    assert make_bag.main([*args, "--height", str(HEIGHT), "--supersample", "1", "--quiet"]) == 0
+    bag = _small_bag(tmp_path / scenario, scenario)
     out = tmp_path / "owl"
     assert process.main([str(bag), "-o", str(out), "-q"]) == 0
     assert calibration_warnings(out, 0) == []
