@@ -663,11 +663,12 @@ class OwlEngine:
 
     @property
     def imu_time_offset_sigma_s(self) -> float:
-        """1-sigma of the online offset estimate, s (NaN when not estimated)."""
+        """1-sigma of the online offset estimate in use, s (NaN unless
+        ``estimate_time_offset``; an estimate only observed is in :attr:`online_calibration`)."""
         f = self._offset_filter
-        return (
-            f.offset_sigma_s if f is not None and self.options.estimate_time_offset else (math.nan)
-        )
+        if f is None or not self.options.estimate_time_offset:
+            return math.nan
+        return f.offset_sigma_s
 
     @property
     def online_calibration(self) -> to.OnlineCalibration | None:
