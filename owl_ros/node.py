@@ -5,9 +5,10 @@ block: an image goes straight into the pipeline's one bounded frame queue (newes
 :mod:`owl_ros.scheduler`), every other message into the node's :class:`Inbox`; one worker
 thread owns the :class:`~owl_ros.pipeline.Pipeline` (engine, IMU buffer), hands it the
 inbox's messages in order, processes frames and publishes (the engine's tracker detects
-new corners on a helper thread of its own while the worker estimates the frame). Topics, parameters and
-diagnostics are described in ``docs`` / contract.md and ``config/owl.yaml``; every
-parameter is declared from the one table in :mod:`owl_ros.params`.
+new corners on a helper thread of its own while the worker estimates the frame). Topics,
+parameters and diagnostics are described in ``docs`` / contract.md and
+``config/owl.yaml``; every parameter is declared from the one table in
+:mod:`owl_ros.params`.
 
 Subscriptions (best effort, keep last: they match drivers and replayed bags): ``image``
 (or ``image/compressed`` with ``image_transport: compressed``), ``camera_info``, ``imu``
