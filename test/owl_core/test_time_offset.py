@@ -123,13 +123,22 @@ def test_the_rotation_error_is_found_along_the_axes_the_motion_determines(axes: 
 
 
 def test_without_angular_acceleration_the_rotation_error_still_updates() -> None:
-    """A steady turn carries no offset information, but ``M`` still informs ``phi``."""
+    """A steady turn carries no offset information, but ``M`` still informs ``phi`` (and
+    the bias); the offset does not move, not even through its correlations."""
     filt = TimeOffsetFilter(0.0)
     cov = np.eye(3) * SIGMA**2
     m = _skew(np.array([0.0, 0.5, 0.0]))
     assert filt.update(np.zeros(3), cov, np.zeros(3), np.zeros(3), 0.0, np.zeros(3), m)
     assert filt.offset_sigma_s == pytest.approx(0.05)  # the offset untouched
     assert np.sqrt(filt.misalignment_cov[0, 0]) < 0.1  # phi_x informed (with the bias)
+    # once an excited frame has correlated the offset with the bias, a frame without
+    # angular acceleration still leaves the offset where it is (a consider update)
+    j = np.array([2.0, 0.0, 0.0])
+    assert filt.update(np.array([0.01, 0, 0]), cov, np.zeros(3), j, 0.0, np.zeros(3), m)
+    offset, sigma = filt.offset_s, filt.offset_sigma_s
+    assert offset != 0.0 and filt.cov[0, 1] != 0.0
+    assert filt.update(np.array([0.004, 0, 0]), cov, np.zeros(3), np.zeros(3), 0.0, np.zeros(3), m)
+    assert filt.offset_s == offset and filt.offset_sigma_s == pytest.approx(sigma, rel=1e-12)
     with pytest.raises(InvalidInputError, match="misalignment jacobian"):
         filt.update(np.zeros(3), cov, np.zeros(3), np.zeros(3), 0.0, np.zeros(3), np.eye(2))
     with pytest.raises(InvalidInputError, match="misalignment_sigma"):
