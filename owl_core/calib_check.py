@@ -71,6 +71,9 @@ FloatArray = npt.NDArray[np.float64]
 
 __all__ = ["CalibrationMonitor", "MonitorOptions", "MonitorVerdict"]
 
+#: the end of a verdict's message when images and gyro disagree.
+_DISAGREE = "; images and gyro disagree: run owl_calibrate"
+
 
 @dataclass(frozen=True)
 class MonitorOptions:
@@ -157,7 +160,8 @@ class MonitorVerdict:
             "window" (the fits over the last ``window_s``).
         offset_sigma_s: 1-sigma of ``offset_s``, s (NaN when the window gave none).
         configured_offset_s: the configured one, s.
-        moving_intervals: frame intervals in the window that turned, count.
+        moving_intervals: frame intervals in the window that turned, count (``online``:
+            the frames the filter took).
         message: one line saying what was found.
     """
 
@@ -338,9 +342,7 @@ class CalibrationMonitor:
                 f"it needs changes of the rotation rate)"
             )
         disagrees = rotation_off or offset_off
-        message = f"{what}, {when}" + (
-            "; images and gyro disagree: run owl_calibrate" if disagrees else ""
-        )
+        message = f"{what}, {when}" + (_DISAGREE if disagrees else "")
         return MonitorVerdict(
             self._newest_ns,
             disagrees,
@@ -348,7 +350,7 @@ class CalibrationMonitor:
             q,
             float(online.offset_s),
             self._offset,
-            len(self._intervals),
+            online.updates,
             message,
             "online",
             online.offset_sigma_s,
@@ -408,7 +410,7 @@ class CalibrationMonitor:
             q = None
             what = f"rotation axis {angle:.1f} deg off the configured rotation (one axis seen)"
         message = f"{what}, imu_time_offset {offset:.4f} s (configured {self._offset:.4f} s)" + (
-            "; images and gyro disagree: run owl_calibrate" if disagrees else ""
+            _DISAGREE if disagrees else ""
         )
         self.last = MonitorVerdict(
             int(t1[-1]),

@@ -1403,7 +1403,13 @@ class OwlEngine:
         filt.predict(max(stamp - since, 0) * 1e-9)
         self._offset_prev_ns = stamp
         used = self._gyro.imu_time_offset_ns
-        model = self._offset_model(integ.stamps, stamp, tracked.bias, filt.offset_s - used * 1e-9)
+        model = self._offset_model(
+            integ.stamps,
+            stamp,
+            tracked.bias,
+            filt.offset_s - used * 1e-9,
+            with_phi=not self.options.estimate_time_offset,
+        )
         wide = np.eye(3) * _OFFSET_LEFTOVER_PRIOR**2
         est = hd.estimate_motion(
             integ.e,
@@ -1425,7 +1431,7 @@ class OwlEngine:
                 jacobian,
                 used * 1e-9 + delta,
                 bias_cam,
-                None if self.options.estimate_time_offset else by_phi,
+                by_phi,
             )
             if self.options.estimate_time_offset and filt.offset_sigma_s < (
                 TIME_OFFSET_APPLY_SIGMA_S
@@ -1449,8 +1455,13 @@ class OwlEngine:
         self._bias.cov = self._r_ci @ filt.cov[1:4, 1:4] @ self._r_ci.T
 
     def _offset_model(
-        self, stamps: npt.NDArray[np.int64], stamp: int, bias: FloatArray, delta_s: float
-    ) -> tuple[FloatArray, FloatArray, float, FloatArray] | None:
+        self,
+        stamps: npt.NDArray[np.int64],
+        stamp: int,
+        bias: FloatArray,
+        delta_s: float,
+        with_phi: bool,
+    ) -> tuple[FloatArray, FloatArray, float, FloatArray | None] | None:
         """The leftover rotation an offset ``delta_s`` (s) above the one in use would leave
         in this frame, and its derivative: the slope over the fit window of the rotation by
         which each column's derotation changes (:mod:`owl_core.time_offset`), from the gyro
@@ -1458,10 +1469,11 @@ class OwlEngine:
 
         Also the leftover a small error ``phi`` of the configured extrinsic rotation would
         leave (the true one ``R_ci Exp(phi)``: each gyro rotation in the camera frame is
-        conjugated by ``Exp(phi)``), as its (3, 3) derivative by ``phi`` at 0.
+        conjugated by ``Exp(phi)``), as its (3, 3) derivative by ``phi`` at 0 (None unless
+        ``with_phi``).
 
         Returns ((3,) leftover rad/s, (3,) d leftover / d offset rad/s per s, the delta
-        used s, (3, 3) d leftover / d phi rad/s per rad), linearised at a delta the gyro
+        used s, (3, 3) d leftover / d phi rad/s per rad or None), linearised at a delta the gyro
         covers (0 when the IMU does not reach ``stamp + delta`` yet); None without 3
         columns covered.
         """
@@ -1487,9 +1499,11 @@ class OwlEngine:
 
         at = leftover(delta) if delta else np.zeros(3)
         slope = (at - leftover(delta - step)) / (step * 1e-9)
-        eps = 1e-3  # rad, the numerical derivative's step
-        turns = [so3_exp(eps * axis) for axis in np.eye(3)]
-        by_phi = np.stack([rate(t.T @ base @ t) / eps for t in turns], axis=1)
+        by_phi = None
+        if with_phi:
+            eps = 1e-3  # rad, the numerical derivative's step
+            turns = [so3_exp(eps * axis) for axis in np.eye(3)]
+            by_phi = np.stack([rate(t.T @ base @ t) / eps for t in turns], axis=1)
         return at, slope, delta * 1e-9, by_phi
 
     def _rates_at_bearing_time(self, integ: _Integrated, headed: _Headed) -> FloatArray:
