@@ -25,9 +25,7 @@ integer nanoseconds.
 
 from __future__ import annotations
 
-import collections
 import math
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -51,7 +49,7 @@ from owl_core.types import FrameResult, GyroSamples, ImageFrame, PointFlag
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
-__all__ = ["EngineOptions", "OwlEngine", "TrackJob"]
+__all__ = ["EngineOptions", "OwlEngine"]
 
 #: 1-sigma of the configured IMU time offset for ``estimate_time_offset``, s.
 TIME_OFFSET_SIGMA_S = 0.05
@@ -408,11 +406,6 @@ def fit_tracks(bearings: FloatArray, tau_s: FloatArray, mask: BoolArray, order: 
     return TrackFit(bearing, rate, tau_ref, gain, valid)
 
 
-#: (stamp_ns, ids (N,), pixel history (N, W, 2), unrotated bearings (N, W, 3)): see
-#: ``_MotionState.bearing_cache``.
-_BearingCache = tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray]
-
-
 @dataclass
 class _MotionState:
     """What the engine carries from one frame to the next, besides the tracker, the gyro
@@ -441,7 +434,7 @@ class _MotionState:
     heading_history: list[tuple[int, FloatArray, float]] = field(default_factory=list)
     speed_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
     speed_rate: float = 0.0
-    bearing_cache: _BearingCache | None = None
+    bearing_cache: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
     residual_memory: tuple[int, npt.NDArray[np.uint32], FloatArray] | None = None
     range_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray, FloatArray] | None = (
         None
@@ -484,74 +477,10 @@ class _FrameLog:
         self.reasons.extend(notes)
 
 
-class TrackJob:
-    """One frame between :meth:`OwlEngine.begin` and :meth:`OwlEngine.finish`: its
-    tracking, :meth:`run`, is the part that may run on another thread.
-
-    Attributes:
-        stamp_ns: the frame's stamp, ns.
-        prev_ns: the previous frame's stamp, ns (None for the first after a reset).
-        log: what the frame's stages report so far.
-        t_start: when :meth:`OwlEngine.begin` started, on the engine's clock, s.
-        seconds: the tracking's duration, s (NaN before it ran).
-    """
-
-    def __init__(
-        self,
-        stamp_ns: int,
-        prev_ns: int | None,
-        log: _FrameLog,
-        t_start: float,
-        work: Callable[[], Tracks],
-        clock: Callable[[], float],
-    ) -> None:
-        self.stamp_ns = stamp_ns
-        self.prev_ns = prev_ns
-        self.log = log
-        self.t_start = t_start
-        self.seconds = math.nan
-        self._work: Callable[[], Tracks] | None = work
-        self._clock = clock
-        self._lock = threading.Lock()
-        self._tracks: Tracks | None = None
-        self._error: BaseException | None = None
-
-    @property
-    def done(self) -> bool:
-        """The tracking has run (or failed)."""
-        return self._work is None
-
-    def run(self) -> None:
-        """Track the frame (once; a second call, from any thread, waits for the first).
-        An error is kept for :meth:`result`."""
-        with self._lock:
-            work, self._work = self._work, None
-            if work is None:
-                return
-            t0 = self._clock()
-            try:
-                self._tracks = work()
-            except Exception as err:  # raised again where the frame is finished
-                self._error = err
-            self.seconds = self._clock() - t0
-
-    def result(self) -> Tracks:
-        """The tracks (running the tracking first if it has not run).
-
-        Raises:
-            Exception: what the tracking raised.
-        """
-        self.run()
-        if self._error is not None:
-            raise self._error
-        assert self._tracks is not None
-        return self._tracks
-
-
 @dataclass(frozen=True)
 class _Tracked:
     """Stage 1 (track): the tracker's output, the previous frame's stamp (ns, None for
-    the first) and the gyro bias (3,), rad/s, the frame's estimate starts from."""
+    the first) and the gyro bias (3,), rad/s, the prediction used."""
 
     tracks: Tracks
     prev_ns: int | None
@@ -695,7 +624,6 @@ class OwlEngine:
         self._offset_frames = 0
         self._offset_prev_ns: int | None = None
         self._last_tracks: Tracks | None = None
-        self._pending: collections.deque[TrackJob] = collections.deque()  # begun, unfinished
         self.frames = 0
 
     @property
@@ -792,7 +720,6 @@ class OwlEngine:
         self._tracker.reset()
         self._state = _MotionState()
         self._heading_filter.reset()
-        self._pending.clear()
         if not keep_gyro:
             self._last_tracks = None
             self._gyro.reset()
@@ -927,8 +854,7 @@ class OwlEngine:
         """Run the pipeline on one image (see the module docstring): a chain of stages,
         :meth:`_track`, :meth:`_integrate`, :meth:`_estimate_heading`, :meth:`_looming`
         and :meth:`_compose`; each returns a small frozen record, or a :class:`StageSkip`
-        saying why the frame gives no points. The same as :meth:`begin`, ``run`` and
-        :meth:`finish` in a row.
+        saying why the frame gives no points.
 
         Args:
             frame: the image (H, W) uint8 matching the camera size, integer-ns stamp.
@@ -939,94 +865,28 @@ class OwlEngine:
         Raises:
             InvalidInputError: wrong image shape or dtype.
         """
-        job = self.begin(frame)
-        job.run()
-        return self.finish(job)
-
-    def continues(self, stamp_ns: int) -> bool:
-        """Whether a frame stamped ``stamp_ns`` keeps the tracks: it is later than the last
-        frame begun, by at most ``max_frame_gap_s`` (else :meth:`begin` resets them). Only
-        such a frame may begin while the previous one is still unfinished."""
-        last = self._state.last_stamp
-        return last is None or 0 < int(stamp_ns) - last <= self.options.max_frame_gap_s * 1e9
-
-    def begin(self, frame: ImageFrame) -> TrackJob:
-        """Stage 1 set up: check the image, reset the tracks after a backwards stamp or a
-        too long gap, and prepare the tracking with the gyro's prediction. Cheap; the
-        tracking itself is the returned job's ``run``, the rest :meth:`finish`.
-
-        Overlap (the node tracks a frame while it estimates the previous one): the
-        tracking of a frame may run on one thread while :meth:`finish` of the frame before
-        it runs on another. The rules, checked here: frames begin in stamp order, one at
-        a time after the previous one's tracking has run; at most one begun frame is
-        unfinished when another begins, and only when the new one
-        :meth:`continues` the tracks; :meth:`finish` takes them in the order they began.
-        What overlap changes: an overlapped frame's prediction (only Lucas-Kanade's
-        start point) uses the bias from before the previous frame's estimate, and the
-        tracks can differ by a small part of a pixel; each estimate still starts from the
-        bias the previous frame's estimate left. :meth:`reset` only while nothing is being
-        tracked or finished.
-
-        Raises:
-            InvalidInputError: wrong image shape or dtype.
-            RuntimeError: the rules above broken.
-        """
         t_start = self.clock()
         img = self._check_image(frame)
         stamp = int(frame.stamp_ns)
-        if self._pending:
-            if not self._pending[-1].done:
-                raise RuntimeError("begin: the previous frame has not been tracked yet")
-            if len(self._pending) > 1 or not self.continues(stamp):
-                raise RuntimeError(
-                    "begin: finish the previous frame first (it is unfinished and this "
-                    f"frame, stamp {stamp} ns, does not continue its tracks)"
-                )
         log = _FrameLog()
         gap_reason = self._check_gap(stamp)
         if gap_reason is not None:
             log.reasons.append(gap_reason)
-        job = self._track(img, stamp, log, t_start)
-        self._pending.append(job)
-        return job
-
-    def finish(self, job: TrackJob) -> FrameResult:
-        """Stages 2-5 of a frame :meth:`begin` started: integrate, heading, looming,
-        compose. Runs the job's tracking first if it has not run (waits for it when
-        another thread is running it).
-
-        Raises:
-            RuntimeError: ``job`` is not the oldest unfinished frame.
-        """
-        if not self._pending or self._pending[0] is not job:
-            raise RuntimeError("finish: frames must be finished in the order they began")
-        try:
-            tracks = job.result()
-        finally:
-            self._pending.popleft()
-        self._last_tracks = tracks
-        stamp, log = job.stamp_ns, job.log
-        timings = [("track", job.seconds)]
-        timings += [(k, float(v)) for k, v in getattr(tracks, "timings", {}).items()]
-        lost = tracks.lost_by_reason or {}
-        dropped = tuple((f"lost_{k}", int(v)) for k, v in lost.items() if v)
-        # the bias now: the same as at begin without overlap, and with it the bias the
-        # previous frame's estimate left (the estimates do not depend on the overlap)
-        tracked = _Tracked(tracks, job.prev_ns, self._bias.bias, tuple(timings), dropped)
+        tracked = self._track(img, stamp)
         log.add(tracked.timings, tracked.dropped)
         integrated = self._integrate(tracked, stamp)
         if isinstance(integrated, StageSkip):
-            return self._skipped(stamp, integrated, log, job.t_start)
+            return self._skipped(stamp, integrated, log, t_start)
         log.add(integrated.timings, integrated.dropped, integrated.notes)
         headed = self._estimate_heading(integrated, tracked.prev_ns, stamp)
         if isinstance(headed, StageSkip):
-            return self._skipped(stamp, headed, log, job.t_start)
+            return self._skipped(stamp, headed, log, t_start)
         log.add(headed.timings)
         if self._offset_filter is not None:
             log.add(self._update_time_offset(integrated, headed, tracked, stamp))
         loomed = self._looming(integrated, headed, stamp)
         log.add(loomed.timings, loomed.dropped, loomed.notes)
-        return self._compose(stamp, integrated, headed, loomed, log, job.t_start)
+        return self._compose(stamp, integrated, headed, loomed, log, t_start)
 
     def _check_image(self, frame: ImageFrame) -> npt.NDArray[np.uint8]:
         img = np.asarray(frame.image)
@@ -1064,41 +924,39 @@ class OwlEngine:
             stamp, None, math.inf, self._bias.bias, log.timings, log.reasons, log.dropped
         )
 
-    def _track(
-        self, img: npt.NDArray[np.uint8], stamp: int, log: _FrameLog, t_start: float
-    ) -> TrackJob:
-        """Stage 1: the tracking job, predicted with the gyro's rotation since the last
-        frame (computed now, so that the job itself reads no engine state but the
-        tracker's)."""
+    def _track(self, img: npt.NDArray[np.uint8], stamp: int) -> _Tracked:
+        """Stage 1: track features, predicted with the gyro's rotation since the last frame."""
         bias = self._bias.bias
         prev = self._state.last_stamp
-        cache = self._state.bearing_cache
         predict = None
         if (
             self._readout_ns
             and prev is not None
             and self._gyro.covers(prev, stamp + self._readout_ns)
         ):
-            predict = self._row_time_predictor(prev, stamp, bias, cache)
+            predict = self._row_time_predictor(prev, stamp, bias)
         elif prev is not None and self._gyro.covers(prev, stamp):
             r_rel = self._gyro.relative_rotation(prev, stamp, bias)
             cam = self.camera
 
             def predict(px: FloatArray) -> FloatArray:
-                return cam.bearing_to_pixel(self._previous_bearings(cache, prev, px) @ r_rel.T)
+                return cam.bearing_to_pixel(self._previous_bearings(prev, px) @ r_rel.T)
 
-        tracker = self._tracker
+        t0 = self.clock()
+        tracks = self._tracker.track(img, stamp, predict)
+        self._last_tracks = tracks
+        timings = [("track", self.clock() - t0)]
+        timings += [(k, float(v)) for k, v in getattr(tracks, "timings", {}).items()]
         self._state.last_stamp = stamp
         self.frames += 1
-        return TrackJob(
-            stamp, prev, log, t_start, lambda: tracker.track(img, stamp, predict), self.clock
-        )
+        lost = tracks.lost_by_reason or {}
+        dropped = tuple((f"lost_{k}", int(v)) for k, v in lost.items() if v)
+        return _Tracked(tracks, prev, bias, tuple(timings), dropped)
 
-    def _previous_bearings(
-        self, cache: _BearingCache | None, prev: int, px: FloatArray
-    ) -> FloatArray:
+    def _previous_bearings(self, prev: int, px: FloatArray) -> FloatArray:
         """Unit bearings (M, 3) of the previous frame's pixels ``px`` (M, 2): from the
-        bearing ``cache`` when that frame converted exactly these pixels."""
+        bearing cache when that frame converted exactly these pixels."""
+        cache = self._state.bearing_cache
         if (
             cache is not None
             and cache[0] == prev
@@ -1109,7 +967,7 @@ class OwlEngine:
         return self.camera.pixel_to_bearing(px)
 
     def _row_time_predictor(
-        self, prev: int, stamp: int, bias: FloatArray, cache: _BearingCache | None
+        self, prev: int, stamp: int, bias: FloatArray
     ) -> Callable[[FloatArray], FloatArray]:
         """The tracker's gyro prediction with a rolling shutter: each feature rotated from its
         row's time in the previous frame (stamp ``prev``) to its row's time in this one
@@ -1121,7 +979,7 @@ class OwlEngine:
 
         def predict(px: FloatArray) -> FloatArray:
             fraction = px[:, 1] / height
-            e_stamp = grid.to_stamp(1, fraction, self._previous_bearings(cache, prev, px))
+            e_stamp = grid.to_stamp(1, fraction, self._previous_bearings(prev, px))
             for _ in range(2):
                 out = cam.bearing_to_pixel(grid.from_stamp(0, fraction, e_stamp))
                 fraction = np.where(np.isfinite(out[:, 1]), out[:, 1] / height, fraction)

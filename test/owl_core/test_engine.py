@@ -6,7 +6,6 @@ once per module.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -16,7 +15,6 @@ from bags.sim import scenarios
 from owl_core.camera import CameraModel
 from owl_core.engine import EngineOptions, OwlEngine, fit_tracks
 from owl_core.errors import InvalidInputError
-from owl_core.tracker import Tracks
 from owl_core.types import GyroSamples, ImageFrame, PointFlag
 
 SIM_OPTS = scenarios.SimOptions(seconds=0.5, width=320, height=240)
@@ -354,83 +352,3 @@ def test_range_filter_fuses_the_moved_previous_point_with_the_measurement(
     np.testing.assert_allclose(out[2], r1[2] * 1.5, rtol=1e-12)
     np.testing.assert_allclose(rel[2], s_m[2])
     assert np.all(rel[:2] < s_m[:2])
-
-
-def test_overlapped_frames_estimate_as_sequential_ones(
-    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
-) -> None:
-    """Each frame tracked on this thread while the previous one is finished on another
-    (the node's overlap): only Lucas-Kanade's start point differs (the bias one estimate
-    older), so the tracks agree to a few LK stopping steps (lk_epsilon_px = 0.01 px) and
-    the heading far inside its own 1-sigma."""
-    sim, frames = street
-    seq = make_engine(sim)
-    seq.add_gyro(sim.gyro_samples())
-    expected = [seq.process(ImageFrame(f.stamp_ns, f.image)) for f in frames]
-    engine = make_engine(sim)
-    engine.add_gyro(sim.gyro_samples())
-    got = []
-    with ThreadPoolExecutor(1) as pool:
-        finishing = None
-        for f in frames:
-            job = engine.begin(ImageFrame(f.stamp_ns, f.image))
-            job.run()  # while the pool finishes the previous frame
-            if finishing is not None:
-                got.append(finishing.result())
-            finishing = pool.submit(engine.finish, job)
-        assert finishing is not None
-        got.append(finishing.result())
-    assert sum(r.num_points > 0 for r in got) >= len(frames) - 2
-    for a, b in zip(expected, got, strict=True):
-        np.testing.assert_array_equal(a.ids, b.ids)
-        if a.num_points:
-            assert np.abs(a.pixels - b.pixels).max() < 0.05
-            assert a.heading is not None and b.heading is not None
-            angle = np.arccos(np.clip(a.heading @ b.heading, -1.0, 1.0))
-            assert angle < 0.2 * a.heading_sigma_rad
-
-
-def test_overlap_rules_are_enforced(
-    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
-) -> None:
-    sim, frames = street
-    engine = make_engine(sim)
-    engine.add_gyro(sim.gyro_samples())
-    first = engine.begin(ImageFrame(frames[0].stamp_ns, frames[0].image))
-    with pytest.raises(RuntimeError, match="not been tracked"):
-        engine.begin(ImageFrame(frames[1].stamp_ns, frames[1].image))
-    first.run()
-    second = engine.begin(ImageFrame(frames[1].stamp_ns, frames[1].image))
-    second.run()
-    with pytest.raises(RuntimeError, match="order they began"):
-        engine.finish(second)
-    with pytest.raises(RuntimeError, match="finish the previous frame first"):
-        engine.begin(ImageFrame(frames[2].stamp_ns, frames[2].image))  # two unfinished
-    engine.finish(first)
-    # a frame that resets the tracks (backwards) may not overlap an unfinished one
-    assert not engine.continues(frames[0].stamp_ns)
-    with pytest.raises(RuntimeError, match="does not continue"):
-        engine.begin(ImageFrame(frames[0].stamp_ns, frames[0].image))
-    engine.finish(second)
-    res = engine.process(ImageFrame(frames[0].stamp_ns, frames[0].image))
-    assert any("backwards" in r for r in res.reasons)
-
-
-def test_a_tracking_error_is_raised_where_the_frame_is_finished(
-    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
-) -> None:
-    sim, frames = street
-    engine = make_engine(sim)
-    job = engine.begin(ImageFrame(frames[0].stamp_ns, frames[0].image))
-
-    def broken() -> Tracks:
-        raise ValueError("tracker broke")
-
-    job._work = broken
-    with ThreadPoolExecutor(1) as pool:
-        pool.submit(job.run).result()  # no exception escapes the tracking thread
-    assert job.done
-    with pytest.raises(ValueError, match="tracker broke"):
-        engine.finish(job)
-    res = engine.process(ImageFrame(frames[1].stamp_ns, frames[1].image))  # it carries on
-    assert res.stamp_ns == frames[1].stamp_ns

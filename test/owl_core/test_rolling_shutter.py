@@ -154,7 +154,7 @@ def test_tracker_prediction_follows_each_row_under_pure_rotation() -> None:
         px = px.reshape(-1, 2)
         engine._state.last_stamp = prev
         if readout:
-            predicted = engine._row_time_predictor(prev, stamp, np.zeros(3), None)(px)
+            predicted = engine._row_time_predictor(prev, stamp, np.zeros(3))(px)
         else:
             r_rel = engine.gyro.relative_rotation(prev, stamp)
             predicted = camera.bearing_to_pixel(camera.pixel_to_bearing(px) @ r_rel.T)
