@@ -337,3 +337,43 @@ def test_still_verdict_widens_the_rotation_by_the_translation_it_may_hide() -> N
         assert not est.translating and est.reason.startswith("no translation")
         d = est.rotation_error
         assert float(d @ np.linalg.solve(est.rotation_cov, d)) < 16.3
+
+
+def test_estimate_is_unbiased_when_the_noise_is_at_its_claimed_level() -> None:
+    """A camera moving over a ground plane (every point below the horizon, the paper's
+    cube scene): the rotation about the camera's x axis and a vertical heading are nearly
+    interchangeable there. The fit's residuals are normalised by |h x e|; a Gauss-Newton
+    whose gradient leaves out that normaliser's derivative stops where the noise pulls it,
+    about 2.5 sigma off along that direction in every realisation (a bias of order
+    sigma^2 that more points do not remove). The mean of 60 estimates must lie within 4
+    of its standard errors of the truth."""
+    rng = np.random.default_rng(4)
+    n, sigma = 900, 3e-3
+    x = rng.uniform(-6.0, 6.0, n)
+    z = np.exp(rng.uniform(np.log(3.0), np.log(30.0), n))
+    p = np.column_stack([x, np.full(n, 1.2), z])  # the ground, 1.2 m below the camera
+    e = p / np.linalg.norm(p, axis=1, keepdims=True)
+    inside = (np.abs(e[:, 0] / e[:, 2]) < 0.55) & (e[:, 1] / e[:, 2] < 0.4)
+    t = np.array([0.15, 0.0, 1.0])
+    # none within the normaliser's floor (min_sin) of the heading: there the normaliser
+    # is held and that handful of points has a small bias of its own
+    inside &= np.linalg.norm(np.cross(e, t / np.linalg.norm(t)), axis=1) > 0.1
+    e, r = e[inside], np.linalg.norm(p[inside], axis=1)
+    f0 = -(t - (e @ t)[:, None] * e) / r[:, None]
+    u1, u2 = tangent_basis(e)
+    deltas, headings = [], []
+    for _ in range(60):
+        noise = (
+            rng.standard_normal((e.shape[0], 1)) * u1 + rng.standard_normal((e.shape[0], 1)) * u2
+        )
+        est = hd.estimate_motion(e, f0 + sigma * noise, sigma, PRIOR)
+        assert est.heading is not None
+        deltas.append(est.rotation_error)
+        headings.append(est.heading)
+    d = np.array(deltas)
+    sem = d.std(axis=0) / np.sqrt(d.shape[0])
+    assert np.all(np.abs(d.mean(axis=0)) < 4.0 * sem), (d.mean(axis=0), sem)
+    h = np.array(headings)
+    mean_h = h.mean(axis=0) / np.linalg.norm(h.mean(axis=0))
+    spread = np.sqrt(np.mean([angle(k, mean_h) ** 2 for k in h]))
+    assert angle(mean_h, t / np.linalg.norm(t)) < 4.0 * spread / np.sqrt(h.shape[0])
