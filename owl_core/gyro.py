@@ -114,13 +114,6 @@ class GyroBuffer:
             rate), ``"duplicate"`` (stamp equal to the newest accepted one),
             ``"out_of_order"`` (stamp older than the newest accepted one).
 
-    Threads: one thread may add samples while others read (the node appends on its
-    worker while the engine's estimate stage integrates on another thread). Each read
-    takes one snapshot of the held samples, published whole after every change; a
-    change never writes where a published snapshot can see (new samples go past its
-    end, a reset starts new arrays). Calls that add or reset are not safe against
-    each other.
-
     Raises:
         CalibrationError: bad extrinsic quaternion.
         InvalidInputError: bad offset or capacity.
@@ -162,8 +155,6 @@ class GyroBuffer:
         self._w = np.zeros((0, 3), dtype=np.float64)
         self._i0 = 0  # first live sample
         self._n = 0  # one past the last live sample
-        # what readers see: views of the live samples, replaced whole (class docstring)
-        self._held: tuple[npt.NDArray[np.int64], FloatArray] = (self._t[:0], self._w[:0])
 
     # ------------------------------------------------------------ properties
 
@@ -180,42 +171,31 @@ class GyroBuffer:
     @property
     def stamps_ns(self) -> npt.NDArray[np.int64]:
         """(N,) int64 stamps of the held samples, IMU clock, nanoseconds (a copy)."""
-        return self._held[0].copy()
+        return self._t[self._i0 : self._n].copy()
 
     @property
     def rates_imu(self) -> FloatArray:
         """(N, 3) float64 held angular rates, IMU frame, rad/s (a copy)."""
-        return self._held[1].copy()
+        return self._w[self._i0 : self._n].copy()
 
     @property
     def camera_span_ns(self) -> tuple[int, int] | None:
         """(first, last) sample times on the camera clock, nanoseconds, or None if empty."""
-        t = self._held[0]
-        if t.shape[0] == 0:
+        if self._n == self._i0:
             return None
-        offset = self._offset_ns
-        return int(t[0]) - offset, int(t[-1]) - offset
+        return (
+            int(self._t[self._i0]) - self._offset_ns,
+            int(self._t[self._n - 1]) - self._offset_ns,
+        )
 
     def __len__(self) -> int:
-        return int(self._held[0].shape[0])
-
-    def _publish(self) -> None:
-        """Show readers the live samples (one assignment: a reader sees all or nothing)."""
-        self._held = (self._t[self._i0 : self._n], self._w[self._i0 : self._n])
-
-    def _forget(self) -> None:
-        """Drop every sample; new arrays, so that no later sample lands where a reader's
-        snapshot still looks."""
-        self._t = np.zeros(0, dtype=np.int64)
-        self._w = np.zeros((0, 3), dtype=np.float64)
-        self._i0 = self._n = 0
-        self._publish()
+        return self._n - self._i0
 
     # ------------------------------------------------------------------ input
 
     def reset(self) -> None:
         """Forget every sample and zero the drop counters (e.g. after a time jump)."""
-        self._forget()
+        self._i0 = self._n = 0
         self.dropped = dict.fromkeys(DROP_REASONS, 0)
 
     def set_calibration(
@@ -302,7 +282,7 @@ class GyroBuffer:
             self.dropped[reason] += counts[reason]
         if counts["gap"]:
             opened = int(np.flatnonzero(kinds["gap"])[-1])
-            self._forget()  # forget what lies before the (last) gap
+            self._i0 = self._n = 0  # forget what lies before the (last) gap
             accept[:opened] = False
         self._append(t[accept], w[accept])
         return GyroIntake(
@@ -326,18 +306,23 @@ class GyroBuffer:
             new_t[:live] = self._t[self._i0 : self._n]
             new_w[:live] = self._w[self._i0 : self._n]
             self._t, self._w, self._i0, self._n = new_t, new_w, 0, live
-        self._t[self._n : self._n + m] = t  # past the end of every published snapshot
+        self._t[self._n : self._n + m] = t
         self._w[self._n : self._n + m] = w
         self._n += m
         cutoff = int(self._t[self._n - 1]) - self._capacity_ns
         self._i0 += int(np.searchsorted(self._t[self._i0 : self._n], cutoff, side="left"))
-        self._publish()
 
     # ------------------------------------------------------------- integration
 
     def covers(self, t0_ns: int, t1_ns: int) -> bool:
         """Whether the samples span camera times ``[min(t0,t1), max(t0,t1)]`` (ns)."""
-        return _spans(self._held[0], self._offset_ns, int(t0_ns), int(t1_ns))
+        if self._n == self._i0:
+            return False
+        a, b = sorted((int(t0_ns), int(t1_ns)))
+        return bool(
+            self._t[self._i0] <= a + self._offset_ns
+            and b + self._offset_ns <= self._t[self._n - 1]
+        )
 
     def relative_rotation(
         self, t0_ns: int, t1_ns: int, bias_imu: npt.ArrayLike = (0.0, 0.0, 0.0)
@@ -454,38 +439,28 @@ class GyroBuffer:
         bias = np.asarray(bias_imu, dtype=np.float64)
         if bias.shape != (3,) or not np.all(np.isfinite(bias)):
             raise InvalidInputError(f"bias_imu must be 3 finite numbers, got {bias_imu!r}")
-        t, w = self._held  # one snapshot (class docstring)
-        offset, rotation = self._offset_ns, self._rotation
-        if not _spans(t, offset, t0_ns, t1_ns):
-            held = "no samples"
-            if t.shape[0]:
-                held = f"camera times [{int(t[0]) - offset}, {int(t[-1]) - offset}] ns"
+        if not self.covers(t0_ns, t1_ns):
+            span = self.camera_span_ns
+            held = "no samples" if span is None else f"camera times [{span[0]}, {span[1]}] ns"
             raise TimeError(
                 f"gyro samples do not cover camera interval [{t0_ns}, {t1_ns}] ns "
-                f"(imu_time_offset {offset} ns); buffer holds {held}"
+                f"(imu_time_offset {self._offset_ns} ns); buffer holds {held}"
             )
-        a = t0_ns + offset
-        b = t1_ns + offset
+        a = t0_ns + self._offset_ns
+        b = t1_ns + self._offset_ns
+        t = self._t[self._i0 : self._n]
         # Samples bracketing [a, b]: t[lo] <= a, t[hi] >= b.
         lo = max(int(np.searchsorted(t, a, side="right")) - 1, 0)
         hi = min(int(np.searchsorted(t, b, side="left")), t.shape[0] - 1)
         ts = t[lo : hi + 1]
-        ws = w[lo : hi + 1]
+        ws = self._w[self._i0 + lo : self._i0 + hi + 1]
         inner = (ts > a) & (ts < b)
         knots_ns = np.concatenate([[a], ts[inner], [b]]) if b > a else np.array([a])
         rel_knots = (knots_ns - a).astype(np.float64) * 1e-9
         rel_ts = (ts - a).astype(np.float64) * 1e-9
         rates_imu = np.stack([np.interp(rel_knots, rel_ts, ws[:, i]) for i in range(3)], axis=-1)
-        rates_cam: FloatArray = (rates_imu - bias) @ rotation  # R^T w, row-wise
+        rates_cam: FloatArray = (rates_imu - bias) @ self._rotation  # R^T w, row-wise
         return rel_knots, rates_cam
-
-
-def _spans(t: npt.NDArray[np.int64], offset_ns: int, t0_ns: int, t1_ns: int) -> bool:
-    """Whether the IMU stamps ``t`` (N,) span camera times ``[min(t0,t1), max(t0,t1)]``."""
-    if t.shape[0] == 0:
-        return False
-    a, b = sorted((t0_ns, t1_ns))
-    return bool(t[0] <= a + offset_ns and b + offset_ns <= t[-1])
 
 
 def _last_problem(
