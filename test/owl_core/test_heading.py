@@ -343,10 +343,11 @@ def test_estimate_is_unbiased_when_the_noise_is_at_its_claimed_level() -> None:
     """A camera moving over a ground plane (every point below the horizon, the paper's
     cube scene): the rotation about the camera's x axis and a vertical heading are nearly
     interchangeable there. The fit's residuals are normalised by |h x e|; a Gauss-Newton
-    whose gradient leaves out that normaliser's derivative stops where the noise pulls it,
-    about 2.5 sigma off along that direction in every realisation (a bias of order
-    sigma^2 that more points do not remove). The mean of 60 estimates must lie within 4
-    of its standard errors of the truth."""
+    whose gradient leaves out that normaliser's derivative stops where the noise pulls it:
+    here the rotation about x came out 1.1 mrad/s off, 4.3 of its own standard deviations
+    (a bias of order sigma^2 that more points do not remove), and the mean of 60 estimates
+    33 standard errors off. The mean of 60 estimates must lie within 4 of its standard
+    errors of the truth."""
     rng = np.random.default_rng(4)
     n, sigma = 900, 3e-3
     x = rng.uniform(-6.0, 6.0, n)
