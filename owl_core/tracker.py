@@ -3,11 +3,12 @@
 Every frame the tracker
 
 1. tracks the live features from the previous image into the new one with
-   pyramidal Lucas-Kanade (``cv2.calcOpticalFlowPyrLK``), starting from the
-   positions given by the optional ``predict`` callable (e.g. the gyro-predicted
-   rotation; fast rotations are then tracked even beyond the pyramid's reach), plus,
-   with ``lk_predict_velocity``, each track's translational displacement of the last
-   frame;
+   Lucas-Kanade (``cv2.calcOpticalFlowPyrLK``), starting from the positions given by
+   the optional ``predict`` callable (e.g. the gyro-predicted rotation; fast rotations
+   are then tracked even beyond the pyramid's reach) plus each track's translational
+   displacement of the last frame (``lk_predict_velocity``; a new track takes its
+   neighbours'): from such a start one pyramid level (``lk_predicted_levels``)
+   converges; the points it does not serve are tracked with the full pyramid;
 2. tracks the results back into the previous image (starting at the forward start,
    with ``lk_backward_levels`` pyramid levels: a consistent track needs no reach
    there) and drops features whose round trip misses the start by more than
@@ -84,30 +85,42 @@ class TrackerOptions:
         lk_window_px: Lucas-Kanade window side, pixels (odd, >= 5).
         lk_levels: pyramid levels above the full image (0 = no pyramid). The
             reach without a prediction is about ``lk_window_px / 2 * 2**lk_levels``.
-        lk_predicted_levels: pyramid levels of the forward pass when a prediction is
-            given (the gyro removed the rotation; what is left is the translational
-            flow). Points that fail a check (LK, forward-backward, patch) are tracked
-            again with ``lk_levels``. ``>= lk_levels`` (the default) tracks every point
-            with the full pyramid. With the gyro's rotation alone, 0 or 1 levels can lock
-            onto a wrong, round-trip-consistent match where the translational flow is
-            large (owl_bench: r/|t| p90 up to +23 % with 0 levels); with
-            ``lk_predict_velocity`` as well, 0 levels cost about a third less LK time and
-            keep r/|t| within 3.9 %, but over the 22 bench cases 11 of 42 heading medians
-            and p90s rise by more than 5 % (up to 25 %), so it is not the default.
+        lk_predicted_levels: pyramid levels of the first forward pass of the points whose
+            start includes their translational displacement (``lk_predict_velocity``, or
+            the gyro's rotation alone without it). Points that fail a check (LK,
+            forward-backward, patch), that this pass moved farther than
+            ``lk_predicted_gate_px`` from their start, or without a translation
+            prediction are tracked again with ``lk_levels`` from the gyro start.
+            ``>= lk_levels`` tracks every point with the full pyramid in one pass. LK's
+            cost is per point, level and iteration: from a start within a fraction of a
+            pixel, one level converges in one or two iterations to within 0.004 px of
+            the full pyramid's answer (97 % of the points on the street scenario;
+            measured against exact reprojections the two have the same error
+            distribution on the cube scenario), where the pyramid from the gyro start
+            spends three coarse levels and more iterations (1000 features, 640x480:
+            forward pass 1.8 against 10.5 ms). With the gyro's rotation alone a shallow
+            pass can lock onto a wrong match where the translational flow is large.
         lk_predict_velocity: add to the gyro prediction each track's translational
             displacement of the previous frame (its flow minus the rotational part the
-            gyro predicted then, scaled by the ratio of the frame intervals), so LK starts
-            near the answer and a shallow pass reaches it; tracks without a previous
-            prediction start at the gyro prediction alone.
+            gyro predicted then, scaled by the ratio of the frame intervals); a track
+            without one (new) takes the median of its ``predict_neighbours`` nearest
+            tracks' within ``predict_radius_px`` (at least three), else it has no
+            translation prediction.
+        lk_predicted_gate_px: a point that the shallow pass moved farther than this from its
+            start is tracked again with the full pyramid, pixels (the prediction missed:
+            the shallow pass may have converged to a wrong match).
+        lk_shallow_max_miss: when more than this fraction of the predicted points failed
+            or moved beyond the gate in a frame (speed or turn rate changing fast between
+            frames: a car at 10 Hz), the next frame tracks every point with the full
+            pyramid at once (the retries would cost more than they save); it returns to
+            the shallow pass once the prediction holds again, in [0, 1].
+        predict_neighbours: neighbours whose displacement a new track takes (>= 3; fewer:
+            new tracks get no translation prediction), count.
+        predict_radius_px: those neighbours lie within this distance, pixels.
         lk_backward_levels: pyramid levels of the backward (forward-backward check)
             pass (capped at ``lk_levels``). It starts at the forward start, where a
             consistent track returns to within ``fb_threshold_px``, so it needs little
-            reach; each level costs about as much as the full image (1000 features,
-            640x480: 1 level ~7 ms, 0 levels ~3.7 ms of CPU on the loaded test machine).
-            0 levels change 33 of 89761 check decisions on the street scenario and about
-            a fifth of the LK time; over owl_bench's 21 scored cases the heading figures
-            change by -1.2 % on average and r/|t| by -0.1 % (all within +1.6 %), but four
-            heading p90s rise by 5.3 to 10 % (receding +10 %), so 1 stays the default.
+            reach (1000 features, 640x480: 0 levels 1.8 ms, 1 level 4.2 ms).
         lk_max_iterations: LK iterations per level.
         lk_epsilon_px: LK stops when an update is smaller than this, pixels.
         lk_min_eigenvalue: LK rejects points whose normalised minimum eigenvalue
@@ -140,8 +153,8 @@ class TrackerOptions:
     border_px: float = 8.0
     lk_window_px: int = 15
     lk_levels: int = 3
-    lk_predicted_levels: int = 3
-    lk_backward_levels: int = 1
+    lk_predicted_levels: int = 0
+    lk_backward_levels: int = 0
     lk_max_iterations: int = 30
     lk_epsilon_px: float = 0.01
     lk_min_eigenvalue: float = 1e-4
@@ -152,7 +165,11 @@ class TrackerOptions:
     max_cell_share: float = 3.0
     history_len: int = 8
     background_detection: bool = False
-    lk_predict_velocity: bool = False
+    lk_predict_velocity: bool = True
+    lk_predicted_gate_px: float = 1.0
+    lk_shallow_max_miss: float = 0.25
+    predict_neighbours: int = 6
+    predict_radius_px: float = 48.0
 
     def __post_init__(self) -> None:
         ints = {
@@ -166,6 +183,7 @@ class TrackerOptions:
             "lk_backward_levels": (self.lk_backward_levels, 0),
             "lk_max_iterations": (self.lk_max_iterations, 1),
             "history_len": (self.history_len, 2),
+            "predict_neighbours": (self.predict_neighbours, 0),
         }
         for name, (value, low) in ints.items():
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
@@ -186,6 +204,9 @@ class TrackerOptions:
             "fb_threshold_px": (self.fb_threshold_px, 0.0, math.inf, False),
             "max_cell_share": (self.max_cell_share, 0.0, math.inf, True),
             "max_patch_error": (self.max_patch_error, 0.0, 255.0, False),
+            "lk_predicted_gate_px": (self.lk_predicted_gate_px, 0.0, math.inf, False),
+            "predict_radius_px": (self.predict_radius_px, 0.0, math.inf, False),
+            "lk_shallow_max_miss": (self.lk_shallow_max_miss, 0.0, 1.0, True),
             "merge_distance_px": (self.merge_distance_px, 0.0, math.inf, True),
             "redetect_below": (self.redetect_below, 0.0, 1.0, False),
         }
@@ -277,6 +298,10 @@ class FeatureTracker:
         # per track: the rotational part of the last frame's predicted displacement (NaN
         # where there was no prediction), pixels
         self._rot_disp = np.zeros((0, 2), dtype=np.float64)
+        # this frame's LK start with the translation prediction, px (lk_predict_velocity)
+        self._velocity_start = np.zeros((0, 2), dtype=np.float64)
+        # whether the next frame's predicted points take the shallow pass first
+        self._shallow_next = True
         # background_detection: corners (K, 2) of the previous image being detected, and
         # the seconds it took (a detection still running is discarded: pure function)
         self._pending: Future[tuple[FloatArray, float]] | None = None
@@ -435,6 +460,8 @@ class FeatureTracker:
         opts = self.options
         m = prev.shape[0]
         init = prev.copy()
+        # points whose start includes their translational displacement
+        predicted = np.zeros(m, dtype=bool)
         if predict is not None:
             guess = np.asarray(predict(prev.copy()), dtype=np.float64)
             if guess.shape != (m, 2):
@@ -445,13 +472,9 @@ class FeatureTracker:
             init[ok] = guess[ok]
             rot_disp = np.where(ok[:, None], guess - prev, np.nan)
             if opts.lk_predict_velocity and self._history.shape[1] > 2:
-                # the last frame's translational displacement, scaled to this interval
-                dt_now = float(self._stamps[0] - self._stamps[1])
-                dt_last = float(self._stamps[1] - self._stamps[2])
-                if self._stamps[2] >= 0 and dt_last > 0:
-                    trans = (self._history[:, 1] - self._history[:, 2]) - self._rot_disp
-                    good = ok & np.all(np.isfinite(trans), axis=1)
-                    init[good] += trans[good] * (dt_now / dt_last)
+                trans, predicted = self._translation_prediction(prev, ok)
+                self._velocity_start = init.copy()
+                self._velocity_start[predicted] += trans[predicted]
             self._rot_disp = rot_disp
         else:
             self._rot_disp = np.full((m, 2), np.nan)
@@ -459,21 +482,86 @@ class FeatureTracker:
         p_init = init.astype(np.float32).reshape(-1, 1, 2)
         full = opts.lk_levels
         if predict is None or opts.lk_predicted_levels >= full:
+            if predicted.any():  # the full pyramid, from the start with the translation
+                p_init[predicted, 0] = self._velocity_start[predicted]
             return self._lk_pass(prev_img, cur_img, prev, p0, p_init, full)
-        # A gyro-predicted start leaves only the translational flow to find: a shallow
-        # pyramid reaches it for most points; those that fail any check are tracked
-        # again from the same start with the full pyramid (VINS-Fusion does the same).
-        new_pos, reason = self._lk_pass(
-            prev_img, cur_img, prev, p0, p_init, opts.lk_predicted_levels
-        )
-        retry = np.flatnonzero((reason >= 1) & (reason <= 3))
-        if retry.size:
-            pos2, reason2 = self._lk_pass(
-                prev_img, cur_img, prev[retry], p0[retry], p_init[retry], full
+        if not opts.lk_predict_velocity:
+            predicted = np.ones(m, dtype=bool)
+            p_start = p_init
+        else:
+            p_start = p_init.copy()
+            p_start[predicted, 0] = self._velocity_start[predicted]
+        # A start that already includes the translational flow leaves a fraction of a
+        # pixel to find: a shallow pass converges there (to within 0.004 px of the full
+        # pyramid's answer for 97 % of the points); points that fail a check, whose pass
+        # moved them farther than lk_predicted_gate_px from that start, or without a
+        # translation prediction are tracked with the full pyramid from the gyro start
+        # (VINS-Fusion does the same). When the last frame's prediction missed more than
+        # lk_shallow_max_miss of its points (a fast change of speed or turn: a car at
+        # 10 Hz), every point takes the full pyramid.
+        new_pos = np.full((m, 2), np.nan)
+        reason = np.ones(m, dtype=np.int8)
+        first = np.flatnonzero(predicted) if self._shallow_next else np.zeros(0, dtype=np.intp)
+        if first.size:
+            pos1, reason1 = self._lk_pass(
+                prev_img, cur_img, prev[first], p0[first], p_start[first], opts.lk_predicted_levels
             )
-            new_pos[retry] = pos2
-            reason[retry] = reason2
+            new_pos[first], reason[first] = pos1, reason1
+            moved = np.linalg.norm(pos1 - p_start[first, 0], axis=1)
+            bad = ((reason1 >= 1) & (reason1 <= 3)) | ~(moved <= opts.lk_predicted_gate_px)
+            redo = np.concatenate([np.flatnonzero(~predicted), first[bad]])
+        else:
+            redo = np.arange(m)
+        if redo.size:
+            redo.sort()
+            pos2, reason2 = self._lk_pass(
+                prev_img, cur_img, prev[redo], p0[redo], p_init[redo], full
+            )
+            new_pos[redo] = pos2
+            reason[redo] = reason2
+        if opts.lk_predict_velocity and predicted.any():
+            miss = (reason[predicted] != 0) | ~(
+                np.linalg.norm(new_pos[predicted] - p_start[predicted, 0], axis=1)
+                <= opts.lk_predicted_gate_px
+            )
+            self._shallow_next = float(np.mean(miss)) <= opts.lk_shallow_max_miss
         return new_pos, reason
+
+    def _translation_prediction(
+        self, prev: FloatArray, ok: npt.NDArray[np.bool_]
+    ) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+        """Each track's expected translational displacement in this frame, px (M, 2), and
+        which tracks have one (M,): the last frame's displacement less the rotational part
+        the gyro predicted then, scaled by the ratio of the frame intervals; a track without
+        one (new) takes the median of its ``predict_neighbours`` nearest tracks' within
+        ``predict_radius_px`` of ``prev`` (M, 2), when at least three are there. ``ok``
+        (M,): tracks with a gyro prediction this frame."""
+        opts = self.options
+        m = prev.shape[0]
+        trans = np.full((m, 2), np.nan)
+        have = np.zeros(m, dtype=bool)
+        dt_now = float(self._stamps[0] - self._stamps[1])
+        dt_last = float(self._stamps[1] - self._stamps[2])
+        if not (self._stamps[2] >= 0 and dt_last > 0):
+            return trans, have
+        last = (self._history[:, 1] - self._history[:, 2]) - self._rot_disp
+        have = ok & np.all(np.isfinite(last), axis=1)
+        trans[have] = last[have] * (dt_now / dt_last)
+        need = np.flatnonzero(ok & ~have)
+        donors = np.flatnonzero(have)
+        if need.size and donors.size >= 3 and opts.predict_neighbours >= 3:
+            k = min(opts.predict_neighbours, donors.size)
+            dist, nb = cKDTree(prev[donors]).query(
+                prev[need], k=k, distance_upper_bound=opts.predict_radius_px
+            )
+            found = np.isfinite(dist)
+            vals = trans[donors[np.where(found, nb, 0)]]  # (n_need, k, 2)
+            vals[~found] = np.nan
+            enough = found.sum(axis=1) >= 3
+            fill = need[enough]
+            trans[fill] = np.nanmedian(vals[enough], axis=1)
+            have[fill] = True
+        return trans, have
 
     def _lk_pass(
         self,
@@ -521,7 +609,7 @@ class FeatureTracker:
                 p1,
                 p0.copy(),
                 winSize=win,
-                maxLevel=min(opts.lk_backward_levels, levels),
+                maxLevel=min(opts.lk_backward_levels, opts.lk_levels),
                 criteria=criteria,
                 flags=flags,
                 minEigThreshold=opts.lk_min_eigenvalue,

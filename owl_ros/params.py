@@ -469,8 +469,9 @@ PARAMS: tuple[Param, ...] = (
         "tracker_lk_predicted_levels",
         "int",
         _T.lk_predicted_levels,
-        "pyramid levels of the gyro-predicted forward pass; points failing it are tracked "
-        "again with tracker_lk_levels (>= tracker_lk_levels: one full pass)",
+        "pyramid levels of the first forward pass of points predicted by the gyro and their "
+        "last displacement; points it does not serve are tracked again with "
+        "tracker_lk_levels (>= tracker_lk_levels: one full pass)",
         low=0,
         high=8,
         engine="tracker.lk_predicted_levels",
@@ -480,8 +481,8 @@ PARAMS: tuple[Param, ...] = (
         "bool",
         _T.lk_predict_velocity,
         "start Lucas-Kanade at the gyro prediction plus each track's last translational "
-        "displacement (with tracker_lk_predicted_levels 0: about a third less LK time, "
-        "heading medians and p90s up to 25 % worse on some bench cases)",
+        "displacement (a new track: its neighbours'), so that the shallow first pass "
+        "converges (false: every point from the gyro prediction alone)",
         engine="tracker.lk_predict_velocity",
     ),
     # ---- dense stage (owl_core.dense; node settings) ---------------------------------------

@@ -188,6 +188,76 @@ def test_velocity_prediction_reaches_a_shift_one_level_cannot() -> None:
     assert kept[False] < 0.5 * kept[True]
 
 
+def test_shallow_pass_from_the_velocity_start_gives_the_full_pyramid_s_positions() -> None:
+    # Constant image velocity: from the third frame on, each track's start (its last
+    # displacement) is the answer to within the tracking noise, and one pyramid level
+    # converges where three levels from the start without the translation do, to within
+    # a hundredth of a pixel, on every track both keep.
+    v = np.array([2.6, -1.7])
+    runs = {}
+    for name, opts in (
+        ("shallow", TrackerOptions(max_features=300)),
+        ("full", TrackerOptions(max_features=300, lk_predicted_levels=3,
+                                lk_predict_velocity=False, lk_backward_levels=1)),
+    ):  # fmt: skip
+        tracker = FeatureTracker(opts)
+        for k in range(4):
+            out = tracker.track(_shifted(v * k), k, predict=lambda p: p)
+        runs[name] = out
+    a, b = runs["shallow"], runs["full"]
+    common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+    assert common.size > 0.9 * b.num_tracks
+    assert np.max(np.linalg.norm(a.pixels[ia] - b.pixels[ib], axis=1)) < 0.01
+    old = a.ages >= 3
+    err = np.linalg.norm(a.pixels[old] - a.history[old, 1] - v, axis=1)
+    assert np.count_nonzero(old) > 0.8 * a.num_tracks and np.max(err) < 0.1
+
+
+def test_a_new_track_takes_its_neighbours_displacement() -> None:
+    # Frames at 0, 1 and 4 time units with a constant image velocity of 4 px per unit:
+    # the last step is 12 px, beyond the ~7 px reach of LK without a pyramid
+    # (lk_levels 0). Tracks born in the second frame have no displacement of their own;
+    # their neighbours' median starts them at the answer. Without it they are lost. (600
+    # features requested, detection whenever one is missing: new tracks in every frame.)
+    v = np.array([4.0, 1.5])
+    stamps = (0, 1_000_000, 4_000_000)
+    kept = {}
+    for neighbours in (6, 0):
+        opts = TrackerOptions(
+            max_features=600, lk_levels=0, redetect_below=1.0, predict_neighbours=neighbours
+        )
+        tracker = FeatureTracker(opts)
+        for stamp in stamps:
+            out = tracker.track(_shifted(v * stamp / 1e6), stamp, predict=lambda p: p)
+            if stamp == stamps[1]:
+                born = out.ids[out.ages == 0]
+        young = np.isin(out.ids, born)
+        err = np.linalg.norm(out.pixels[young] - out.history[young, 1] - 3 * v, axis=1)
+        kept[neighbours] = int(np.count_nonzero(err < 0.1))
+        if neighbours:
+            assert born.size >= 10
+            assert kept[neighbours] >= 0.8 * born.size
+            assert np.max(err) < 0.1
+    assert kept[0] < 0.2 * kept[6]
+
+
+def test_a_missed_prediction_is_tracked_with_the_full_pyramid() -> None:
+    # Three frames at 3 px per frame, then the motion reverses: the last displacement
+    # predicts +3 px, the image moves -9 px (12 px off). The shallow pass misses, the
+    # points are tracked again with the full pyramid from the gyro start: the tracks are
+    # kept, their steps exact; the next frame at the new velocity too.
+    shifts = [0.0, 3.0, 6.0, -3.0, -12.0]
+    tracker = FeatureTracker(TrackerOptions(max_features=300))
+    for k, x in enumerate(shifts):
+        out = tracker.track(_shifted(np.array([x, 0.5 * x])), k, predict=lambda p: p)
+        if k >= 3:
+            old = _tracked(out)
+            step = np.array([x - shifts[k - 1], 0.5 * (x - shifts[k - 1])])
+            err = np.linalg.norm(out.pixels[old] - out.history[old, 1] - step, axis=1)
+            assert np.count_nonzero(old) > 0.8 * out.num_tracks
+            assert np.max(err) < 0.1
+
+
 def test_backward_pass_needs_no_pyramid_reach() -> None:
     # The backward pass starts where the forward pass started: a 16 px shift (beyond
     # the ~7 px reach of one level) passes the check with 0 backward levels, and the
