@@ -93,6 +93,33 @@ def test_bench_scores_are_owl_eval_scores_and_a_wrong_heading_shows_exactly():
     assert float(heading_error_deg(wrong, v)) == pytest.approx(7.0, abs=1e-9)
 
 
+def test_seeds_score_every_method_over_the_frames_of_all_seeds(tmp_path):
+    """--seeds K renders each case with K noise seeds: a case's figures are owl_eval's
+    summary over the frames of all seeds, each seed's own figures are kept beside."""
+    profile = bench.Profile("tiny", 160, 120, 0.4, 120, (bench.Case("street"),), seeds=(0, 1))
+    doc = bench.run_bench(profile, tmp_path)
+    (case,) = doc["cases"]
+    assert doc["seeds"] == [0, 1] and case["frames"] == 26
+    assert set(case["per_seed"]) == {"0", "1"}
+    assert len(list(tmp_path.glob("street_160x120_*seed1_*.npz"))) == 1
+    scores = []
+    for seed in (0, 1):
+        sim = bench._sim(bench.Case("street"), profile, seed)
+        frames = bench.load_frames(sim, tmp_path)
+        run = bench.run_case(bench.Case("street"), profile, frames, sim, keep_results=True)
+        scores += [
+            score_frame(bench.owl_estimate(r), frames.truth(k), np.zeros(3))
+            for k, r in enumerate(run.owl_results)
+        ]
+        own = bench.case_report(run)["methods"]["owl"]["heading_deg_median"]
+        assert case["per_seed"][str(seed)]["owl"]["heading_deg_median"] == own
+    merged = summarize(scores, False)
+    assert case["methods"]["owl"]["heading_deg_median"] == merged["heading_deg_median"]
+    assert case["methods"]["owl"]["heading_deg_p90"] == merged["heading_deg_p90"]
+    seeds = [case["per_seed"][k]["owl"]["heading_deg_median"] for k in ("0", "1")]
+    assert seeds[0] != seeds[1]  # the noise differs
+
+
 def test_cli_json_and_errors(capsys, tmp_path):
     argv = ["--quick", "--json", "--cases", "cube", "--seconds", "0.2", "--quiet"]
     assert bench.main([*argv, "--features", "120", "--cache-dir", str(tmp_path)]) == 0
@@ -107,6 +134,9 @@ def test_cli_json_and_errors(capsys, tmp_path):
     assert bench.main(["--quick", "--features", "0", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--features" in err and "0" in err
+    assert bench.main(["--quick", "--seeds", "0", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--seeds" in err
 
 
 def test_best_baseline_is_the_lowest_heading_median_and_owl_is_judged_against_every_gap():
