@@ -485,6 +485,15 @@ PARAMS: tuple[Param, ...] = (
         "converges (false: every point from the gyro prediction alone)",
         engine="tracker.lk_predict_velocity",
     ),
+    Param(
+        "tracker_lk_deformation_correction",
+        "bool",
+        _T.lk_deformation_correction,
+        "remove from each tracked position the first-order error translation-only "
+        "Lucas-Kanade makes on a window whose content deforms (its flow gradient fitted to "
+        "the neighbouring tracks' flows): tracks stay on their scene points as surfaces loom",
+        engine="tracker.lk_deformation_correction",
+    ),
     # ---- dense stage (owl_core.dense; node settings) ---------------------------------------
     Param(
         "dense",

@@ -186,7 +186,10 @@ def test_bias_converges_and_heading_error_falls(biased_street: tuple[Score, Scor
     # the bias estimate converges from the 0.01 rad/s it started with
     assert estimating.bias_err[0] == pytest.approx(0.01)
     assert estimating.bias_err[-1] < 0.3 * 0.01
-    assert estimating.bias_err[-1] < estimating.bias_err[len(estimating.bias_err) // 3]
+    # and stays there: over the second half within a tenth of the bias (measured 0.3 to
+    # 0.5 mrad/s; it settles within a third of the clip, then moves with the tracks)
+    errs = np.array(estimating.bias_err)
+    assert np.max(errs[len(errs) // 2 :]) < 0.1 * 0.01
     # ... and the heading error falls below the error the uncorrected bias leaves
     h_est = np.array(estimating.heading_err_deg)
     h_ign = np.array(ignoring.heading_err_deg)

@@ -223,8 +223,12 @@ def test_a_new_track_takes_its_neighbours_displacement() -> None:
     stamps = (0, 1_000_000, 4_000_000)
     kept = {}
     for neighbours in (6, 0):
-        opts = TrackerOptions(
-            max_features=600, lk_levels=0, redetect_below=1.0, predict_neighbours=neighbours
+        opts = TrackerOptions(  # a pure shift: no deformation to correct
+            max_features=600,
+            lk_levels=0,
+            redetect_below=1.0,
+            predict_neighbours=neighbours,
+            lk_deformation_correction=False,
         )
         tracker = FeatureTracker(opts)
         for stamp in stamps:
@@ -517,3 +521,107 @@ def test_crowded_cells_retire_their_youngest_and_make_room(max_cell_share: float
     retired = np.setdiff1d(first.ids, second.ids)
     assert kept.shape[0] > 0 and retired.shape[0] > 0
     assert np.median(kept) < np.median(retired)
+
+
+def _affine_warped(a: np.ndarray, c: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """I1(x) = I0(c + A^-1 (x - c - t)): the content at p moved to c + t + A (p - c)."""
+    u, v = _grid()
+    q = np.stack([u.ravel() - c[0] - t[0], v.ravel() - c[1] - t[1]])
+    src = np.linalg.solve(a, q) + c[:, None]
+    return _texture(src[0].reshape(u.shape), src[1].reshape(u.shape))
+
+
+def _lk(img0: np.ndarray, img1: np.ndarray, p0: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Translation-only LK, one level, from ``start``, converged tightly: (N, 2)."""
+    import cv2
+
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(
+        img0,
+        img1,
+        p0.astype(np.float32).reshape(-1, 1, 2),
+        start.astype(np.float32).reshape(-1, 1, 2),
+        winSize=(15, 15),
+        maxLevel=0,
+        criteria=(3, 100, 1e-4),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    assert np.all(st == 1)
+    return np.asarray(p1, dtype=np.float64).reshape(-1, 2)
+
+
+def _corners(img: np.ndarray, n: int = 150) -> np.ndarray:
+    import cv2
+
+    pts = cv2.goodFeaturesToTrack(img, n, 0.01, 10, blockSize=5).reshape(-1, 2)
+    inside = (pts[:, 0] > 24) & (pts[:, 0] < W - 25) & (pts[:, 1] > 24) & (pts[:, 1] < H - 25)
+    return np.asarray(pts[inside], dtype=np.float64)
+
+
+def test_deformation_bias_is_the_error_translation_only_lk_makes_on_a_warped_window() -> None:
+    # The content moves by a known affine map (3 % and 2 % stretch and a little shear: a
+    # surface looming at 0.6 to 0.9 /s at 30 Hz; then shrinking) plus a shift.
+    # Translation-only LK started at the exact answer still ends off it, by
+    # e = G^-1 sum g g^T (A - I) d to first order; the flow gradient is fitted to the exact
+    # flows of the neighbouring corners. After subtracting e, what is left must be what LK
+    # leaves on a pure shift of the same texture (8-bit quantisation, ~0.011 px here): the
+    # second-order term, (A - I)^2 x 7 px ~ 0.006 px at the window's edge, averages down
+    # over the window.
+    from owl_core.tracker import deformation_bias
+
+    c = np.array([(W - 1) / 2, (H - 1) / 2])
+    t = np.array([1.3, -0.7])
+    img0 = _texture(*_grid())
+    p0 = _corners(img0)
+
+    def lk_error(a: np.ndarray) -> np.ndarray:
+        exact = c + t + (p0 - c) @ a.T
+        return _lk(img0, _affine_warped(a, c, t), p0, exact) - exact
+
+    floor = float(np.sqrt(np.mean(lk_error(np.eye(2)) ** 2)))
+    for a in (
+        np.array([[1.03, 0.008], [-0.006, 1.02]]),
+        np.array([[0.97, 0.008], [-0.006, 0.98]]),
+    ):
+        err = lk_error(a)
+        bias, has = deformation_bias(img0, p0, c + t + (p0 - c) @ a.T - p0, 15, 8, 48.0)
+        assert np.count_nonzero(has) >= 0.9 * len(p0)
+        rms = float(np.sqrt(np.mean(err[has] ** 2)))
+        left = float(np.sqrt(np.mean((err[has] - bias[has]) ** 2)))
+        assert rms > 2.5 * floor  # the effect is there, well above quantisation
+        assert left < 1.1 * floor, (floor, rms, left)
+
+
+def test_deformation_bias_is_zero_for_a_pure_shift() -> None:
+    from owl_core.tracker import deformation_bias
+
+    img0 = _texture(*_grid())
+    p0 = _corners(img0)
+    flow = np.tile([2.5, -1.25], (len(p0), 1))
+    bias, has = deformation_bias(img0, p0, flow, 15, 8, 48.0, robust_px=0.1)
+    assert np.count_nonzero(has) >= 0.9 * len(p0)
+    assert np.max(np.abs(bias)) < 1e-9
+
+
+def test_with_the_deformation_correction_tracks_stay_on_their_scene_points() -> None:
+    # The camera approaches a textured wall: the image grows by 2 % a frame about its
+    # centre for 6 frames. A track is a scene point only if it stays at c + s_k (p0 - c).
+    # Uncorrected, each frame adds the window's first-order LK error (~0.04 px here) in
+    # the same direction, so the track drifts (0.22 px RMS after 6 frames); corrected,
+    # only the quantisation error per frame is left, which does not add up in one
+    # direction (0.025 px).
+    c = np.array([(W - 1) / 2, (H - 1) / 2])
+    scales = 1.02 ** np.arange(7)
+    frames = [_affine_warped(s * np.eye(2), c, np.zeros(2)) for s in scales]
+    errors = {}
+    for on in (True, False):
+        tracker = FeatureTracker(replace(OPTS, lk_deformation_correction=on, redetect_below=0.01))
+        first = tracker.track(frames[0], 0)
+        start = dict(zip(first.ids.tolist(), first.pixels, strict=True))
+        for k in range(1, len(frames)):
+            out = tracker.track(frames[k], k, predict=lambda p: p)
+        p0 = np.array([start[i] for i in out.ids.tolist()])
+        truth = c + scales[-1] * (p0 - c)
+        keep = np.all(np.abs(truth - c) < c - 20, axis=1)
+        errors[on] = float(np.sqrt(np.mean(np.sum((out.pixels[keep] - truth[keep]) ** 2, axis=1))))
+        assert np.count_nonzero(keep) > 100
+    assert errors[True] < 0.25 * errors[False], errors
