@@ -45,6 +45,7 @@ from typing import TypeVar
 import cv2
 import numpy as np
 import numpy.typing as npt
+from numpy.lib.stride_tricks import sliding_window_view
 from scipy.spatial import cKDTree
 
 from owl_core.errors import InvalidInputError, TimeError
@@ -730,6 +731,9 @@ class FeatureTracker:
         return result
 
 
+_CHUNK = 128  # windows per step in deformation_bias
+
+
 def deformation_bias(
     image: npt.NDArray[np.uint8],
     centres: FloatArray,
@@ -779,72 +783,98 @@ def deformation_bias(
     dist, nb = cKDTree(centres).query(centres, k=k, distance_upper_bound=radius_px)
     found = np.isfinite(dist)
     nb = np.where(found, nb, 0)
-    w = found.astype(np.float64)  # (N, k)
     dx = centres[nb] - centres[:, None]  # (N, k, 2)
-    x = np.concatenate([np.ones((n, k, 1)), dx], axis=2)  # (N, k, 3)
-    xtx = np.einsum("nk,nki,nkj->nij", w, x, x)
-    xty = np.einsum("nk,nki,nkj->nij", w, x, flow[nb])  # (N, 3, 2)
+    fn = flow[nb]  # (N, k, 2)
+
+    def affine_fit(w: FloatArray) -> FloatArray:
+        """Weighted least-squares affine flow per point: (N, 3, 2) rows f0, df/dx, df/dy."""
+        wx, wy = w * dx[..., 0], w * dx[..., 1]
+        xtx = np.empty((n, 3, 3))
+        xtx[:, 0, 0] = w.sum(axis=1)
+        xtx[:, 0, 1] = xtx[:, 1, 0] = wx.sum(axis=1)
+        xtx[:, 0, 2] = xtx[:, 2, 0] = wy.sum(axis=1)
+        xtx[:, 1, 1] = (wx * dx[..., 0]).sum(axis=1)
+        xtx[:, 1, 2] = xtx[:, 2, 1] = (wx * dx[..., 1]).sum(axis=1)
+        xtx[:, 2, 2] = (wy * dx[..., 1]).sum(axis=1)
+        xty = np.stack(
+            [
+                np.einsum("nk,nkj->nj", w, fn),
+                np.einsum("nk,nkj->nj", wx, fn),
+                np.einsum("nk,nkj->nj", wy, fn),
+            ],
+            axis=1,
+        )  # (N, 3, 2)
+        xtx[~has] = np.eye(3)
+        beta: FloatArray = np.linalg.solve(xtx, xty)
+        return beta
+
     # the neighbours must spread in both directions: the smaller eigenvalue of their
     # offsets' covariance at least (2 px)^2
+    w = found.astype(np.float64)  # (N, k)
     cnt = np.maximum(w.sum(axis=1), 1.0)
-    mean = xtx[:, 0, 1:] / cnt[:, None]
-    cov = xtx[:, 1:, 1:] / cnt[:, None, None] - mean[:, :, None] * mean[:, None, :]
-    tr = cov[:, 0, 0] + cov[:, 1, 1]
-    lam_min = 0.5 * (tr - np.sqrt((cov[:, 0, 0] - cov[:, 1, 1]) ** 2 + 4 * cov[:, 0, 1] ** 2))
+    mx, my = (w * dx[..., 0]).sum(axis=1) / cnt, (w * dx[..., 1]).sum(axis=1) / cnt
+    cxx = (w * dx[..., 0] ** 2).sum(axis=1) / cnt - mx * mx
+    cyy = (w * dx[..., 1] ** 2).sum(axis=1) / cnt - my * my
+    cxy = (w * dx[..., 0] * dx[..., 1]).sum(axis=1) / cnt - mx * my
+    lam_min = 0.5 * (cxx + cyy - np.sqrt((cxx - cyy) ** 2 + 4 * cxy**2))
     has = (found.sum(axis=1) >= 6) & (lam_min >= 4.0)
-    xtx[~has] = np.eye(3)
-    beta = np.linalg.solve(xtx, xty)  # (N, 3, 2): rows 1, 2 = d flow / dx, dy
+    beta = affine_fit(w)
     if robust_px > 0:
         # one reweighting: neighbours off the point's affine flow (another surface across
         # a depth edge, a moving object) count less (Cauchy weights, scale robust_px)
-        res = flow[nb] - np.einsum("nki,nij->nkj", x, beta)  # (N, k, 2)
-        w = w / (1.0 + np.sum(res * res, axis=2) / robust_px**2)
-        xtx = np.einsum("nk,nki,nkj->nij", w, x, x)
-        xty = np.einsum("nk,nki,nkj->nij", w, x, flow[nb])
-        xtx[~has] = np.eye(3)
-        beta = np.linalg.solve(xtx, xty)
+        model = beta[:, None, 0, :] + dx[..., 0:1] * beta[:, None, 1, :]
+        res = fn - model - dx[..., 1:2] * beta[:, None, 2, :]  # (N, k, 2)
+        beta = affine_fit(w / (1.0 + np.sum(res * res, axis=2) / robust_px**2))
     d = np.transpose(beta[:, 1:, :], (0, 2, 1))  # (N, 2, 2): d[n, j, k] = d f_j / d x_k
-    # gradients over each window, bilinear at c + offsets (as OpenCV samples them)
-    gx_img = np.asarray(cv2.Scharr(image, cv2.CV_32F, 1, 0), dtype=np.float32)
-    gy_img = np.asarray(cv2.Scharr(image, cv2.CV_32F, 0, 1), dtype=np.float32)
-    half = (window_px - 1) // 2
+    # gradients over each window, bilinear at c + offsets (as OpenCV samples them), from
+    # the (win + 1)^2 block of both gradient images at each point
     height, width = image.shape
+    grads = np.empty((height, width, 2), dtype=np.float32)  # d/dx, d/dy
+    grads[..., 0] = cv2.Scharr(image, cv2.CV_32F, 1, 0)
+    grads[..., 1] = cv2.Scharr(image, cv2.CV_32F, 0, 1)
+    blocks = sliding_window_view(grads, (window_px + 1, window_px + 1), axis=(0, 1))
+    half = (window_px - 1) // 2
     corner = centres - half
     base = np.floor(corner)
-    a = (corner - base)[:, 0, None, None]
-    b = (corner - base)[:, 1, None, None]
-    steps = np.arange(window_px + 1)
-    cols = np.clip(base[:, 0, None].astype(np.intp) + steps, 0, width - 1)  # (N, win+1)
-    rows = np.clip(base[:, 1, None].astype(np.intp) + steps, 0, height - 1)
-
-    def window(img: npt.NDArray[np.float32]) -> FloatArray:
-        blk = img[rows[:, :, None], cols[:, None, :]].astype(np.float64)  # (N, win+1, win+1)
-        out: FloatArray = (1 - b) * ((1 - a) * blk[:, :-1, :-1] + a * blk[:, :-1, 1:]) + b * (
-            (1 - a) * blk[:, 1:, :-1] + a * blk[:, 1:, 1:]
-        )
-        return out
-
-    gx, gy = window(gx_img), window(gy_img)  # (N, win, win)
-    off = np.arange(-half, half + 1, dtype=np.float64)
-    ox, oy = off[None, None, :], off[None, :, None]  # offsets along x (columns), y (rows)
-    gxx, gxy, gyy = gx * gx, gx * gy, gy * gy
-    g11, g12, g22 = gxx.sum(axis=(1, 2)), gxy.sum(axis=(1, 2)), gyy.sum(axis=(1, 2))
-
-    def moment(p: FloatArray, o: FloatArray) -> FloatArray:
-        return (p * o).sum(axis=(1, 2))  # type: ignore[no-any-return]
-
+    frac = (corner - base).astype(np.float32)
+    iu = np.clip(base[:, 0].astype(np.intp), 0, blocks.shape[1] - 1)
+    iv = np.clip(base[:, 1].astype(np.intp), 0, blocks.shape[0] - 1)
+    off = np.arange(-half, half + 1, dtype=np.float32)
+    basis = np.stack(
+        [
+            np.ones(window_px * window_px, np.float32),
+            np.tile(off, window_px),
+            np.repeat(off, window_px),
+        ],
+        axis=1,
+    )  # (win^2, 3): 1, x offset (columns), y offset (rows)
+    sums = np.empty((n, 3, 3))  # [gxx, gxy, gyy] x [sum, sum * dx, sum * dy]
+    # in chunks of points: the temporaries stay small enough for the allocator to reuse
+    # (whole-array temporaries of 1000 windows cost more in page faults than in arithmetic)
+    for lo in range(0, n, _CHUNK):
+        sl = slice(lo, min(lo + _CHUNK, n))
+        blk = blocks[iv[sl], iu[sl]]  # (M, 2, win+1, win+1)
+        a = frac[sl, 0, None, None, None]
+        b = frac[sl, 1, None, None, None]
+        g = (1 - b) * ((1 - a) * blk[..., :-1, :-1] + a * blk[..., :-1, 1:]) + b * (
+            (1 - a) * blk[..., 1:, :-1] + a * blk[..., 1:, 1:]
+        )  # (M, 2, win, win)
+        g = g.reshape(-1, 2, window_px * window_px)
+        gx, gy = g[:, 0], g[:, 1]
+        sums[sl] = np.stack([gx * gx, gx * gy, gy * gy], axis=1) @ basis
+    g11, g12, g22 = sums[:, 0, 0], sums[:, 1, 0], sums[:, 2, 0]
     # rhs_i = sum_jk D_jk sum g_i g_j d_k
     rx = (
-        moment(gxx, ox) * d[:, 0, 0]
-        + moment(gxx, oy) * d[:, 0, 1]
-        + moment(gxy, ox) * d[:, 1, 0]
-        + moment(gxy, oy) * d[:, 1, 1]
+        sums[:, 0, 1] * d[:, 0, 0]
+        + sums[:, 0, 2] * d[:, 0, 1]
+        + sums[:, 1, 1] * d[:, 1, 0]
+        + sums[:, 1, 2] * d[:, 1, 1]
     )
     ry = (
-        moment(gxy, ox) * d[:, 0, 0]
-        + moment(gxy, oy) * d[:, 0, 1]
-        + moment(gyy, ox) * d[:, 1, 0]
-        + moment(gyy, oy) * d[:, 1, 1]
+        sums[:, 1, 1] * d[:, 0, 0]
+        + sums[:, 1, 2] * d[:, 0, 1]
+        + sums[:, 2, 1] * d[:, 1, 0]
+        + sums[:, 2, 2] * d[:, 1, 1]
     )
     gdet = g11 * g22 - g12 * g12
     ok = has & (gdet > 1e-12 * np.maximum(g11 + g22, 1.0) ** 2)
