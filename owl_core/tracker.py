@@ -321,8 +321,6 @@ class FeatureTracker:
         # per track: the rotational part of the last frame's predicted displacement (NaN
         # where there was no prediction), pixels
         self._rot_disp = np.zeros((0, 2), dtype=np.float64)
-        # this frame's LK start with the translation prediction, px (lk_predict_velocity)
-        self._velocity_start = np.zeros((0, 2), dtype=np.float64)
         # whether the next frame's predicted points take the shallow pass first
         self._shallow_next = True
         # background_detection: corners (K, 2) of the previous image being detected, and
@@ -496,8 +494,9 @@ class FeatureTracker:
         opts = self.options
         m = prev.shape[0]
         init = prev.copy()
-        # points whose start includes their translational displacement
+        # points whose start includes their translational displacement, and that start
         predicted = np.zeros(m, dtype=bool)
+        start = init
         if predict is not None:
             guess = np.asarray(predict(prev.copy()), dtype=np.float64)
             if guess.shape != (m, 2):
@@ -509,8 +508,8 @@ class FeatureTracker:
             rot_disp = np.where(ok[:, None], guess - prev, np.nan)
             if opts.lk_predict_velocity and self._history.shape[1] > 2:
                 trans, predicted = self._translation_prediction(prev, ok)
-                self._velocity_start = init.copy()
-                self._velocity_start[predicted] += trans[predicted]
+                start = init.copy()
+                start[predicted] += trans[predicted]
             self._rot_disp = rot_disp
         else:
             self._rot_disp = np.full((m, 2), np.nan)
@@ -519,14 +518,14 @@ class FeatureTracker:
         full = opts.lk_levels
         if predict is None or opts.lk_predicted_levels >= full:
             if predicted.any():  # the full pyramid, from the start with the translation
-                p_init[predicted, 0] = self._velocity_start[predicted]
+                p_init[predicted, 0] = start[predicted]
             return self._lk_pass(prev_img, cur_img, prev, p0, p_init, full)
         if not opts.lk_predict_velocity:
             predicted = np.ones(m, dtype=bool)
             p_start = p_init
         else:
             p_start = p_init.copy()
-            p_start[predicted, 0] = self._velocity_start[predicted]
+            p_start[predicted, 0] = start[predicted]
         # A start that already includes the translational flow leaves a fraction of a
         # pixel to find: a shallow pass converges there (to within 0.004 px of the full
         # pyramid's answer for 97 % of the points); points that fail a check, whose pass
@@ -786,8 +785,9 @@ def deformation_bias(
     dx = centres[nb] - centres[:, None]  # (N, k, 2)
     fn = flow[nb]  # (N, k, 2)
 
-    def affine_fit(w: FloatArray) -> FloatArray:
-        """Weighted least-squares affine flow per point: (N, 3, 2) rows f0, df/dx, df/dy."""
+    def affine_fit(w: FloatArray, has: npt.NDArray[np.bool_]) -> FloatArray:
+        """Weighted least-squares affine flow per point: (N, 3, 2) rows f0, df/dx, df/dy
+        (identity normal equations where ``has`` is false)."""
         wx, wy = w * dx[..., 0], w * dx[..., 1]
         xtx = np.empty((n, 3, 3))
         xtx[:, 0, 0] = w.sum(axis=1)
@@ -818,13 +818,13 @@ def deformation_bias(
     cxy = (w * dx[..., 0] * dx[..., 1]).sum(axis=1) / cnt - mx * my
     lam_min = 0.5 * (cxx + cyy - np.sqrt((cxx - cyy) ** 2 + 4 * cxy**2))
     has = (found.sum(axis=1) >= 6) & (lam_min >= 4.0)
-    beta = affine_fit(w)
+    beta = affine_fit(w, has)
     if robust_px > 0:
         # one reweighting: neighbours off the point's affine flow (another surface across
         # a depth edge, a moving object) count less (Cauchy weights, scale robust_px)
         model = beta[:, None, 0, :] + dx[..., 0:1] * beta[:, None, 1, :]
         res = fn - model - dx[..., 1:2] * beta[:, None, 2, :]  # (N, k, 2)
-        beta = affine_fit(w / (1.0 + np.sum(res * res, axis=2) / robust_px**2))
+        beta = affine_fit(w / (1.0 + np.sum(res * res, axis=2) / robust_px**2), has)
     d = np.transpose(beta[:, 1:, :], (0, 2, 1))  # (N, 2, 2): d[n, j, k] = d f_j / d x_k
     # gradients over each window, bilinear at c + offsets (as OpenCV samples them), from
     # the (win + 1)^2 block of both gradient images at each point
