@@ -344,9 +344,10 @@ class TrackFit:
         bearing: (N, 3) unit bearing at ``tau_ref`` (current camera orientation).
         rate: (N, 3) derotated bearing rate at ``tau_ref``, tangent to ``bearing``, 1/s.
         tau_ref: (N,) time the fit refers to, relative to the current frame, s (<= 0):
-            the track's time centroid for a straight-line fit (where its slope is the
-            velocity, free of the lag a constant-velocity assumption would cause), 0 for the
-            quadratic fit.
+            for a straight-line fit the track's time centroid ``c`` moved by
+            ``m3 / (2 m2)`` of its frame times (where its slope is the velocity, free of the
+            lag a constant-velocity assumption would cause, also on uneven or dropped
+            frames; ``c`` itself on a regular grid), 0 for the quadratic fit.
         gain: (N,) standard deviation of ``rate`` per unit bearing noise, 1/s.
         valid: (N,) bool.
     """
@@ -393,8 +394,9 @@ def fit_tracks(bearings: FloatArray, tau_s: FloatArray, mask: BoolArray, order: 
         bearings: (N, W, 3) bearings of each track, already in the current camera frame.
         tau_s: (W,) time of each column relative to the current frame, seconds (<= 0).
         mask: (N, W) bool, valid entries.
-        order: 1 (straight line, referred to the time centroid) or 2 (quadratic, referred
-            to tau = 0; tracks with only 2 points fall back to a line).
+        order: 1 (straight line, referred to the time its slope is exact at: see
+            ``TrackFit.tau_ref``) or 2 (quadratic, referred to tau = 0; tracks with only 2
+            points fall back to a line).
 
     Returns:
         :class:`TrackFit`; invalid tracks (fewer than two frames) hold NaN.
