@@ -99,9 +99,11 @@ def test_fit_tracks_refers_the_rate_to_its_time_on_uneven_frames() -> None:
 
     for tau, shifted in ((np.array([0.0, -2.0, -3.0, -4.0]) / 30, True),
                          (np.array([0.0, -1.0, -2.0, -3.0, -4.0]) / 30, False)):  # fmt: skip
-        fit = fit_tracks(np.stack([bearing(t) for t in tau])[None], tau, np.ones((1, tau.size), bool), 1)
+        track = np.stack([bearing(t) for t in tau])[None]
+        fit = fit_tracks(track, tau, np.ones((1, tau.size), bool), 1)
         d = tau - tau.mean()
-        np.testing.assert_allclose(fit.tau_ref[0], tau.mean() + 0.5 * np.sum(d**3) / np.sum(d**2), atol=1e-15)
+        skew = 0.5 * np.sum(d**3) / np.sum(d**2)
+        np.testing.assert_allclose(fit.tau_ref[0], tau.mean() + skew, atol=1e-15)
         assert (abs(fit.tau_ref[0] - tau.mean()) > 0.01) == shifted
         expected = rate_at(fit.tau_ref[0], fit.bearing[0])
         assert np.linalg.norm(fit.rate[0] - expected) < 6e-4 * np.linalg.norm(expected)
