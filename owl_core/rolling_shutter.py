@@ -214,23 +214,15 @@ def fit_timed(
     tau_ref = np.zeros(n)
     gain = np.full(n, np.inf)
     s0 = np.maximum(count, 1.0)
-    centroid = np.sum(m * tau, axis=1) / s0
-    dt = tau - centroid[:, None]
-    sxx = np.sum(m * dt * dt, axis=1)
+    centroid, dt, sxx, slope_time = _sample_times(m, tau)
     line = (count >= 2) & (sxx > 1e-18)
     safe = np.where(line, sxx, 1.0)
     mean = np.einsum("nw,nwc->nc", m, b) / s0[:, None]
     slope = np.einsum("nw,nwc->nc", m * dt, b) / safe[:, None]
-    # On uneven samples (jittered or dropped frames) the least-squares slope of a signal
-    # with curvature is its derivative at centroid + m3 / (2 m2) (central moments of the
-    # times), not at the centroid: exact for a quadratic, zero shift on a regular grid.
-    # Unshifted, a dropped frame refers the rate 11 ms late in a 0.15 s window, and r/|t|
-    # of an approaching point reads 1 % short.
-    tau_rate = np.where(line, centroid + 0.5 * np.sum(m * dt**3, axis=1) / safe, 0.0)
-    ref = (m @ frame_tau_s) / s0
-    d_frame = np.where(mask, frame_tau_s[None, :] - ref[:, None], 0.0)
-    m2_frame = np.sum(m * d_frame**2, axis=1)
-    ref = ref + 0.5 * np.sum(m * d_frame**3, axis=1) / np.where(m2_frame > 1e-18, m2_frame, np.inf)
+    # the rate belongs to the entries' slope time, the bearing is referred to the frame
+    # stamps' (one time for every track over the same frames)
+    tau_rate = np.where(line, slope_time, 0.0)
+    ref = _sample_times(m, np.broadcast_to(frame_tau_s, m.shape))[3]
     out_b[line] = (mean + slope * (ref - centroid)[:, None])[line]
     rate[line] = slope[line]
     tau_ref[line] = ref[line]
@@ -256,6 +248,23 @@ def fit_timed(
     out_b = out_b / np.where(norm > 0, norm, 1.0)
     rate = rate - np.einsum("nc,nc->n", rate, out_b)[:, None] * out_b
     return out_b, rate, tau_ref, gain, valid, tau_rate
+
+
+def _sample_times(
+    weights: FloatArray, times: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Per row of (N, W) ``weights`` and ``times`` (s): the weighted centroid ``c`` (N,),
+    the deviations from it (N, W; 0 where the weight is), their second moment ``m2`` (N,),
+    and the time a least-squares slope through those samples belongs to, ``c + m3 / (2 m2)``
+    (N,). On uneven samples (jittered or dropped frames) the slope of a signal with
+    curvature is its derivative there, not at ``c``: exact for a quadratic, ``c`` itself
+    on a regular grid. At ``c``, a dropped frame in a 0.15 s window at 30 Hz would refer
+    the rate 11 ms late, and r/|t| of an approaching point would read 1 % short."""
+    centroid = np.sum(weights * times, axis=1) / np.maximum(weights.sum(axis=1), 1.0)
+    dev = np.where(weights > 0, times - centroid[:, None], 0.0)
+    m2 = np.sum(weights * dev * dev, axis=1)
+    m3 = np.sum(weights * dev**3, axis=1)
+    return centroid, dev, m2, centroid + 0.5 * m3 / np.where(m2 > 1e-18, m2, np.inf)
 
 
 def bearings_at_stamp(bearings: FloatArray, rate: FloatArray, tau_s: FloatArray) -> FloatArray:

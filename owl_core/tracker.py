@@ -848,11 +848,9 @@ def deformation_bias(
         + sums[:, 2, 1] * d[:, 1, 0]
         + sums[:, 2, 2] * d[:, 1, 1]
     )
-    gdet = g11 * g22 - g12 * g12
-    ok = has & (gdet > 1e-12 * np.maximum(g11 + g22, 1.0) ** 2)
-    safe = np.where(ok, gdet, 1.0)
-    bias[:, 0] = np.where(ok, (g22 * rx - g12 * ry) / safe, 0.0)
-    bias[:, 1] = np.where(ok, (g11 * ry - g12 * rx) / safe, 0.0)
+    sol, solved = _solve_sym2(g11, g12, g22, np.stack([rx, ry], axis=1), trace_floor=1.0)
+    ok = has & solved
+    bias[ok] = sol[ok]
     return bias, ok
 
 
@@ -878,14 +876,27 @@ def _affine_gradient(
     wxc_t = np.transpose(xc * w[..., None], (0, 2, 1))  # (N, 2, k)
     cxx = wxc_t @ xc
     cxf = wxc_t @ (f - mean_f[:, None, :])  # [a, j]
-    det = cxx[:, 0, 0] * cxx[:, 1, 1] - cxx[:, 0, 1] ** 2
-    ok = det > 1e-12 * np.maximum(cxx[:, 0, 0] + cxx[:, 1, 1], 1e-300) ** 2
-    inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)[:, None]
-    d = np.empty((x.shape[0], 2, 2))
-    # D^T = Cxx^-1 Cxf, so d[:, j, a] = (Cxx^-1 Cxf)[a, j]
-    d[:, :, 0] = (cxx[:, 1, 1, None] * cxf[:, 0] - cxx[:, 0, 1, None] * cxf[:, 1]) * inv_det
-    d[:, :, 1] = (cxx[:, 0, 0, None] * cxf[:, 1] - cxx[:, 0, 1, None] * cxf[:, 0]) * inv_det
+    # D^T = Cxx^-1 Cxf, so D = (Cxx^-1 Cxf)^T (zero where Cxx is singular)
+    dt_, _ = _solve_sym2(cxx[:, 0, 0], cxx[:, 0, 1], cxx[:, 1, 1], cxf, trace_floor=1e-300)
+    d = np.transpose(dt_, (0, 2, 1))
     return d, mean_x, mean_f, cxx / sw[:, None, None]
+
+
+def _solve_sym2(
+    a00: FloatArray, a01: FloatArray, a11: FloatArray, rhs: FloatArray, trace_floor: float
+) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+    """Batched solve of symmetric 2x2 systems ``[[a00, a01], [a01, a11]] x = rhs`` in closed
+    form: ``a..`` (N,), ``rhs`` (N, 2) or (N, 2, K); the solution (same shape as ``rhs``,
+    zero where singular) and (N,) bool: solved (``det > 1e-12 max(trace, trace_floor)^2``)."""
+    det = a00 * a11 - a01 * a01
+    ok = det > 1e-12 * np.maximum(a00 + a11, trace_floor) ** 2
+    inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    col = (slice(None),) + (None,) * (rhs.ndim - 2)  # (N,) coefficients against rhs[:, i]
+    c00, c01, c11, scale = (v[col] for v in (a00, a01, a11, inv_det))
+    out = np.empty_like(rhs)
+    out[:, 0] = (c11 * rhs[:, 0] - c01 * rhs[:, 1]) * scale
+    out[:, 1] = (c00 * rhs[:, 1] - c01 * rhs[:, 0]) * scale
+    return out, ok
 
 
 def _rank_within(groups: npt.NDArray[np.int64], ngroups: int) -> npt.NDArray[np.int64]:
