@@ -15,6 +15,7 @@ from bags.sim import scenarios
 from owl_core.camera import CameraModel
 from owl_core.engine import EngineOptions, OwlEngine, fit_tracks
 from owl_core.errors import InvalidInputError
+from owl_core.heading import HeadingOptions
 from owl_core.types import GyroSamples, ImageFrame, PointFlag
 
 SIM_OPTS = scenarios.SimOptions(seconds=0.5, width=320, height=240)
@@ -48,6 +49,8 @@ def test_options_validation_names_the_value() -> None:
         EngineOptions(camera_to_imu_rotation_xyzw=(0.0, 0.0, float("nan"), 1.0))
     with pytest.raises(InvalidInputError, match="bias_inflation"):
         EngineOptions(bias_inflation=0.5)
+    with pytest.raises(InvalidInputError, match=r"confirm_below_turning.*-0.1"):
+        EngineOptions(confirm_below_turning=-0.1)
 
 
 def test_bad_image_raises(street: tuple[scenarios.Simulation, list[scenarios.Frame]]) -> None:
@@ -258,6 +261,29 @@ def test_deterministic(street: tuple[scenarios.Simulation, list[scenarios.Frame]
         outs.append(res)
     np.testing.assert_array_equal(outs[0].looming, outs[1].looming)
     np.testing.assert_array_equal(outs[0].ids, outs[1].ids)
+
+
+def test_confirmed_warm_start_follows_the_turning_weight(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
+) -> None:
+    """``confirm_below_turning`` 0 (the turning model always weighs at least that) keeps the
+    second start on every frame, exactly as ``confirmed_warm_start=False``; above 1 never,
+    a warm start that RANSAC confirms is refined alone whatever the filter says."""
+    sim, frames = street
+
+    def headings(**overrides: object) -> np.ndarray:
+        engine = make_engine(sim, **overrides)
+        engine.add_gyro(sim.gyro_samples())
+        out = [engine.process(ImageFrame(f.stamp_ns, f.image)).heading for f in frames[:12]]
+        return np.array([h for h in out if h is not None])
+
+    never = headings(confirm_below_turning=0.0)
+    assert never.shape[0] >= 5
+    np.testing.assert_array_equal(
+        never, headings(heading=HeadingOptions(confirmed_warm_start=False))
+    )
+    always = headings(confirm_below_turning=2.0)
+    assert not np.array_equal(always, never)  # the street's frames confirm their warm starts
 
 
 def test_gyro_starting_late_shortens_fits_and_says_so(
