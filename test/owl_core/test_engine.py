@@ -267,8 +267,9 @@ def test_confirmed_warm_start_follows_the_turning_weight(
     street: tuple[scenarios.Simulation, list[scenarios.Frame]],
 ) -> None:
     """``confirm_below_turning`` 0 (the turning model always weighs at least that) keeps the
-    second start on every frame, exactly as ``confirmed_warm_start=False``; above 1 never,
-    a warm start that RANSAC confirms is refined alone whatever the filter says."""
+    second start on every frame, exactly as ``confirmed_warm_start=False``. Above 1 a warm
+    start that RANSAC confirms is refined alone whatever the filter says, which changes the
+    street's headings."""
     sim, frames = street
 
     def headings(**overrides: object) -> np.ndarray:
