@@ -38,6 +38,7 @@ from owl_core import heading as hd
 from owl_core import heading_filter as hf
 from owl_core import motion, windows
 from owl_core import rolling_shutter as rs
+from owl_core import speed_filter as sf
 from owl_core import time_offset as to
 from owl_core.camera import CameraModel
 from owl_core.errors import InvalidInputError
@@ -140,8 +141,8 @@ class EngineOptions:
         estimate_speed_change: measure the relative speed change d ln|t|/dt from frame to
             frame and use it to refer r/|t| to the speed at the current stamp (the track fits
             refer to about half a window earlier).
-        speed_rate_gain: weight (0..1] of each frame's measurement in the filtered rate.
-        max_speed_rate: clamp of one frame's measured rate, 1/s.
+        speed_filter: options of the steady / changing pair of Kalman filters on the log
+            speed that give the rate (:class:`~owl_core.speed_filter.TwoModelSpeed`).
         heading: options of the heading / leftover-rotation estimator.
         confirm_below_turning: the heading fit refines a warm start that RANSAC confirms
             alone (``heading.confirmed_warm_start``) only while the heading filter's
@@ -210,8 +211,7 @@ class EngineOptions:
     no_gyro_rotation_sigma: float = 2.0
     max_frame_gap_s: float = 0.5
     estimate_speed_change: bool = True
-    speed_rate_gain: float = 0.3
-    max_speed_rate: float = 5.0
+    speed_filter: sf.TwoModelSpeedOptions = field(default_factory=sf.TwoModelSpeedOptions)
     heading: hd.HeadingOptions = field(default_factory=hd.HeadingOptions)
     confirm_below_turning: float = 0.5
     heading_filter: hf.TwoModelOptions | None = field(default_factory=hf.TwoModelOptions)
@@ -296,12 +296,6 @@ class EngineOptions:
             raise InvalidInputError(
                 f"residual_memory_s must be positive or None, got {self.residual_memory_s!r}"
             )
-        if not 0.0 < self.speed_rate_gain <= 1.0:
-            raise InvalidInputError(
-                f"speed_rate_gain must be in (0, 1], got {self.speed_rate_gain!r}"
-            )
-        if not self.max_speed_rate > 0:
-            raise InvalidInputError(f"max_speed_rate must be > 0, got {self.max_speed_rate!r}")
         if not (isinstance(self.bias_scatter_window, int) and 0 <= self.bias_scatter_window):
             raise InvalidInputError(
                 f"bias_scatter_window must be an int >= 0, got {self.bias_scatter_window!r}"
@@ -428,9 +422,9 @@ class _MotionState:
         last_heading: (3,) the previous heading at its fit reference time (RANSAC seed).
         heading_history: recent fused headings: (stamp_ns, heading at its fit reference
             time, that time relative to stamp_ns in s); they bring the heading to now.
-        speed_state: (stamp_ns, ids (N,), points (N, 3), headings (N, 3)) of the previous
-            frame, for the frame-to-frame speed rate.
-        speed_rate: d ln|t|/dt, 1/s.
+        speed_state: (stamp_ns, ids (N,), points (N, 3), headings (N, 3), their median
+            reference time in s) of the previous frame, for the frame-to-frame speed change.
+        speed_rate: d ln|t|/dt at the last stamp from the speed filter, 1/s.
         bearing_cache: (stamp_ns, ids (N,), pixel history (N, W, 2), its unrotated
             bearings (N, W, 3)) of the previous frame: undistortion (Newton iterations for
             real lenses) then runs on each new position only, not on the whole history.
@@ -444,7 +438,7 @@ class _MotionState:
     last_stamp: int | None = None
     last_heading: FloatArray | None = None
     heading_history: list[tuple[int, FloatArray, float]] = field(default_factory=list)
-    speed_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
+    speed_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray, float] | None = None
     speed_rate: float = 0.0
     bearing_cache: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
     residual_memory: tuple[int, npt.NDArray[np.uint32], FloatArray] | None = None
@@ -612,6 +606,7 @@ class OwlEngine:
         self._rng = np.random.default_rng(opts.seed)
         self._state = _MotionState()
         self._heading_filter = hf.TwoModelHeading(opts.heading_filter or None)
+        self._speed_filter = sf.TwoModelSpeed(opts.speed_filter)
         self._heading_unconfirmed = replace(opts.heading, confirmed_warm_start=False)
         self._offset_filter = (
             to.TimeOffsetFilter(
@@ -733,6 +728,7 @@ class OwlEngine:
         self._tracker.reset()
         self._state = _MotionState()
         self._heading_filter.reset()
+        self._speed_filter.reset()
         if not keep_gyro:
             self._last_tracks = None
             self._gyro.reset()
@@ -785,34 +781,35 @@ class OwlEngine:
         points: FloatArray,
         headings: FloatArray,
         static: BoolArray,
-    ) -> float:
-        """Filtered relative speed change d ln|t|/dt (1/s) from consecutive frames.
+        tau_ref: FloatArray,
+    ) -> None:
+        """Feed the speed filter this frame's log speed change (natural log).
 
-        A static point's scaled position, moved on by the elapsed time at constant speed,
-        predicts this frame's; the ratio of predicted to measured r/|t| is the speed ratio.
+        A static point's scaled position (N, 3), s, in units of the speed at its fit's
+        reference time ``tau_ref`` (N,), s, moved on by the elapsed time at constant speed
+        predicts this frame's; the median log ratio of predicted to measured r/|t| is the
+        log speed change between the two frames' reference times.
         """
         opts = self.options
         prev = self._state.speed_state
-        self._state.speed_state = (stamp, ids[static], points[static], headings[static])
+        tau = float(np.median(tau_ref[static])) if np.any(static) else 0.0
+        self._state.speed_state = (stamp, ids[static], points[static], headings[static], tau)
         if not opts.estimate_speed_change:
-            return 0.0
-        if prev is None:
-            return self._state.speed_rate
-        p_stamp, p_ids, p_points, p_headings = prev
-        dt = (stamp - p_stamp) * 1e-9
-        _, now_idx, prev_idx = np.intersect1d(ids[static], p_ids, return_indices=True)
-        if dt <= 0 or now_idx.size < 20:
-            return self._state.speed_rate
-        predicted = np.linalg.norm(p_points[prev_idx] - p_headings[prev_idx] * dt, axis=1)
-        measured = np.linalg.norm(points[static][now_idx], axis=1)
-        good = (predicted > 0) & (measured > 0)
-        if np.count_nonzero(good) < 20:
-            return self._state.speed_rate
-        rate = float(np.median(np.log(predicted[good] / measured[good]))) / dt
-        rate = float(np.clip(rate, -opts.max_speed_rate, opts.max_speed_rate))
-        gain = opts.speed_rate_gain
-        self._state.speed_rate = (1.0 - gain) * self._state.speed_rate + gain * rate
-        return self._state.speed_rate
+            return
+        increment: float | None = None
+        dt_ref = 0.0
+        if prev is not None:
+            p_stamp, p_ids, p_points, p_headings, p_tau = prev
+            dt = (stamp - p_stamp) * 1e-9
+            dt_ref = dt + tau - p_tau
+            _, now_idx, prev_idx = np.intersect1d(ids[static], p_ids, return_indices=True)
+            if dt > 0 and now_idx.size >= 20:
+                predicted = np.linalg.norm(p_points[prev_idx] - p_headings[prev_idx] * dt, axis=1)
+                measured = np.linalg.norm(points[static][now_idx], axis=1)
+                good = (predicted > 0) & (measured > 0)
+                if np.count_nonzero(good) >= 20:
+                    increment = float(np.median(np.log(predicted[good] / measured[good])))
+        self._state.speed_rate = self._speed_filter.step(stamp, increment, dt_ref, tau)
 
     def _heading_now(
         self,
@@ -1397,8 +1394,11 @@ class OwlEngine:
         h_i = np.where(ok_now[:, None], h_now_i, 0.0)
         # point_now is in units of the speed at the fit reference time; a changing speed
         # (rate s = d ln|t|/dt, measured from frame to frame) rescales it to the current one
-        speed_rate = self._update_speed_rate(stamp, integ.ids, point_now, h_i, ok_now & ~moving)
-        safe = np.where(ok_now, range_over_speed_now * np.exp(speed_rate * tau_ref), 1.0)
+        self._update_speed_rate(stamp, integ.ids, point_now, h_i, ok_now & ~moving, tau_ref)
+        to_current = (
+            self._speed_filter.log_change(tau_ref) if self.options.estimate_speed_change else 0.0
+        )
+        safe = np.where(ok_now, range_over_speed_now * np.exp(to_current), 1.0)
         looming_now = np.einsum("ni,ni->n", h_i, e_now) / safe
         omega_now = motion.cross(e_now, h_i) / safe[:, None]
         return looming_now, omega_now, ok_now

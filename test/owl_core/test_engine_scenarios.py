@@ -229,8 +229,9 @@ def test_accelerating_camera_range_over_speed_refers_to_the_current_speed() -> N
     # 2 m/s^2 from 1 m/s: over the 67 ms fit lag the speed changes by 5-13 %
     fixed, frames = run_scenario("accel", estimate_speed_change=False)
     tracked, _ = run_scenario("accel", frames=frames)
-    assert np.median(tracked.ros_rel_err) < 0.045  # measured 2.8 %
-    assert np.median(fixed.ros_rel_err) > 1.5 * np.median(tracked.ros_rel_err)  # 6.3 %
+    # measured 1.0 % (2.8 % with the fixed-gain rate before the log-speed filter)
+    assert np.median(tracked.ros_rel_err) < 0.02
+    assert np.median(fixed.ros_rel_err) > 3.0 * np.median(tracked.ros_rel_err)  # 6.1 %
 
 
 @pytest.mark.slow
