@@ -424,7 +424,6 @@ class _MotionState:
             time, that time relative to stamp_ns in s); they bring the heading to now.
         speed_state: (stamp_ns, ids (N,), points (N, 3), headings (N, 3), their median
             reference time in s) of the previous frame, for the frame-to-frame speed change.
-        speed_rate: d ln|t|/dt at the last stamp from the speed filter, 1/s.
         bearing_cache: (stamp_ns, ids (N,), pixel history (N, W, 2), its unrotated
             bearings (N, W, 3)) of the previous frame: undistortion (Newton iterations for
             real lenses) then runs on each new position only, not on the whole history.
@@ -439,7 +438,6 @@ class _MotionState:
     last_heading: FloatArray | None = None
     heading_history: list[tuple[int, FloatArray, float]] = field(default_factory=list)
     speed_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray, float] | None = None
-    speed_rate: float = 0.0
     bearing_cache: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray] | None = None
     residual_memory: tuple[int, npt.NDArray[np.uint32], FloatArray] | None = None
     range_state: tuple[int, npt.NDArray[np.uint32], FloatArray, FloatArray, FloatArray] | None = (
@@ -774,7 +772,7 @@ class OwlEngine:
         self._state.bearing_cache = (stamp, ids, hist, out)
         return out
 
-    def _update_speed_rate(
+    def _update_speed_filter(
         self,
         stamp: int,
         ids: npt.NDArray[np.uint32],
@@ -790,26 +788,26 @@ class OwlEngine:
         predicts this frame's; the median log ratio of predicted to measured r/|t| is the
         log speed change between the two frames' reference times.
         """
-        opts = self.options
-        prev = self._state.speed_state
-        tau = float(np.median(tau_ref[static])) if np.any(static) else 0.0
-        self._state.speed_state = (stamp, ids[static], points[static], headings[static], tau)
-        if not opts.estimate_speed_change:
+        if not self.options.estimate_speed_change:
             return
+        prev = self._state.speed_state
+        s_ids, s_points = ids[static], points[static]
+        tau = float(np.median(tau_ref[static])) if s_ids.size else 0.0
+        self._state.speed_state = (stamp, s_ids, s_points, headings[static], tau)
         increment: float | None = None
         dt_ref = 0.0
         if prev is not None:
             p_stamp, p_ids, p_points, p_headings, p_tau = prev
             dt = (stamp - p_stamp) * 1e-9
             dt_ref = dt + tau - p_tau
-            _, now_idx, prev_idx = np.intersect1d(ids[static], p_ids, return_indices=True)
+            _, now_idx, prev_idx = np.intersect1d(s_ids, p_ids, return_indices=True)
             if dt > 0 and now_idx.size >= 20:
                 predicted = np.linalg.norm(p_points[prev_idx] - p_headings[prev_idx] * dt, axis=1)
-                measured = np.linalg.norm(points[static][now_idx], axis=1)
+                measured = np.linalg.norm(s_points[now_idx], axis=1)
                 good = (predicted > 0) & (measured > 0)
                 if np.count_nonzero(good) >= 20:
                     increment = float(np.median(np.log(predicted[good] / measured[good])))
-        self._state.speed_rate = self._speed_filter.step(stamp, increment, dt_ref, tau)
+        self._speed_filter.step(stamp, increment, dt_ref, tau)
 
     def _heading_now(
         self,
@@ -1272,7 +1270,7 @@ class OwlEngine:
                 rot = integ.rotations[int(cols[0])]
                 rows, found = _match_ids(p_ids, integ.ids)
                 moved = (p_points[rows] - p_heading[None, :] * dt) * math.exp(
-                    -self._state.speed_rate * dt
+                    -self._speed_filter.rate * dt
                 )
                 pred = moved @ rot.T
                 r_pred = np.einsum("ni,ni->n", pred, integ.e_now)
@@ -1394,10 +1392,9 @@ class OwlEngine:
         h_i = np.where(ok_now[:, None], h_now_i, 0.0)
         # point_now is in units of the speed at the fit reference time; a changing speed
         # (rate s = d ln|t|/dt, measured from frame to frame) rescales it to the current one
-        self._update_speed_rate(stamp, integ.ids, point_now, h_i, ok_now & ~moving, tau_ref)
-        to_current = (
-            self._speed_filter.log_change(tau_ref) if self.options.estimate_speed_change else 0.0
-        )
+        # (without estimate_speed_change the filter never steps and its log change is 0)
+        self._update_speed_filter(stamp, integ.ids, point_now, h_i, ok_now & ~moving, tau_ref)
+        to_current = self._speed_filter.log_change(tau_ref)
         safe = np.where(ok_now, range_over_speed_now * np.exp(to_current), 1.0)
         looming_now = np.einsum("ni,ni->n", h_i, e_now) / safe
         omega_now = motion.cross(e_now, h_i) / safe[:, None]
