@@ -796,44 +796,7 @@ def deformation_bias(
         res = fn - mean_f[:, None, :] - (dx - mean_x[:, None, :]) @ np.transpose(d, (0, 2, 1))
         cauchy = found / (1.0 + np.sum(res * res, axis=2) / robust_px**2)
         d = _affine_gradient(cauchy, dx, fn)[0]
-    # gradients over each window, bilinear at c + offsets (as OpenCV samples them), from
-    # the (win + 1)^2 block of both gradient images at each point
-    height, width = image.shape
-    # exact in int16 (|Scharr| <= 16 * 255) and a tenth of the float32 filter's time
-    grads = np.empty((height, width, 2), dtype=np.int16)  # d/dx, d/dy
-    grads[..., 0] = cv2.Scharr(image, cv2.CV_16S, 1, 0)
-    grads[..., 1] = cv2.Scharr(image, cv2.CV_16S, 0, 1)
-    blocks = sliding_window_view(grads, (window_px + 1, window_px + 1), axis=(0, 1))
-    half = (window_px - 1) // 2
-    corner = centres - half
-    base = np.floor(corner)
-    frac = (corner - base).astype(np.float32)
-    iu = np.clip(base[:, 0].astype(np.intp), 0, blocks.shape[1] - 1)
-    iv = np.clip(base[:, 1].astype(np.intp), 0, blocks.shape[0] - 1)
-    off = np.arange(-half, half + 1, dtype=np.float32)
-    basis = np.stack(
-        [
-            np.ones(window_px * window_px, np.float32),
-            np.tile(off, window_px),
-            np.repeat(off, window_px),
-        ],
-        axis=1,
-    )  # (win^2, 3): 1, x offset (columns), y offset (rows)
-    sums = np.empty((n, 3, 3))  # [gxx, gxy, gyy] x [sum, sum * dx, sum * dy]
-    # in chunks of points: the temporaries stay small enough for the allocator to reuse
-    # (whole-array temporaries of 1000 windows cost more in page faults than in arithmetic)
-    for lo in range(0, n, _CHUNK):
-        sl = slice(lo, min(lo + _CHUNK, n))
-        blk = blocks[iv[sl], iu[sl]]  # (M, 2, win+1, win+1)
-        a = frac[sl, 0, None, None, None]
-        b = frac[sl, 1, None, None, None]
-        g = (1 - b) * ((1 - a) * blk[..., :-1, :-1] + a * blk[..., :-1, 1:]) + b * (
-            (1 - a) * blk[..., 1:, :-1] + a * blk[..., 1:, 1:]
-        )  # (M, 2, win, win)
-        g = g.reshape(-1, 2, window_px * window_px)
-        gx, gy = g[:, 0], g[:, 1]
-        prods = np.stack([gx * gx, gx * gy, gy * gy], axis=1)  # (M, 3, win^2)
-        sums[sl] = (prods.reshape(-1, basis.shape[0]) @ basis).reshape(-1, 3, 3)
+    sums = _window_moments(image, centres, window_px)
     g11, g12, g22 = sums[:, 0, 0], sums[:, 1, 0], sums[:, 2, 0]
     # rhs_i = sum_jk D_jk sum g_i g_j d_k
     rx = (
@@ -852,6 +815,59 @@ def deformation_bias(
     ok = has & solved
     bias[ok] = sol[ok]
     return bias, ok
+
+
+def _window_moments(
+    image: npt.NDArray[np.uint8], centres: FloatArray, window_px: int
+) -> FloatArray:
+    """Gradient moments of each LK window: (N, 3, 3) ``[g_x g_x, g_x g_y, g_y g_y] x [sum,
+    sum * d_x, sum * d_y]`` over the window's offsets ``d`` (pixels) about each of
+    ``centres`` (N, 2), with the gradients ``g`` (Scharr, as OpenCV's LK takes them)
+    sampled bilinearly at ``c + d`` as LK samples them, from the (win + 1)^2 block of
+    each gradient image at each point (float32 sums of exact int16 gradients)."""
+    n = centres.shape[0]
+    w = window_px
+    # exact in int16 (|Scharr| <= 16 * 255) and a tenth of the float32 filter's time
+    blocks = [
+        sliding_window_view(cv2.Scharr(image, cv2.CV_16S, dx, 1 - dx), (w + 1, w + 1))
+        for dx in (1, 0)
+    ]  # d/dx, d/dy: (H - w, W - w, w + 1, w + 1) views
+    half = (w - 1) // 2
+    corner = centres - half
+    base = np.floor(corner)
+    frac = (corner - base).astype(np.float32)
+    iu = np.clip(base[:, 0].astype(np.intp), 0, blocks[0].shape[1] - 1)
+    iv = np.clip(base[:, 1].astype(np.intp), 0, blocks[0].shape[0] - 1)
+    off = np.arange(-half, half + 1, dtype=np.float32)
+    basis = np.stack([np.ones(w * w, np.float32), np.tile(off, w), np.repeat(off, w)], axis=1)
+    # (win^2, 3): 1, x offset (columns), y offset (rows)
+    sums = np.empty((n, 3, 3))
+    # in chunks of points, into buffers allocated once: the temporaries stay small enough
+    # to reuse (whole-array temporaries of 1000 windows cost more in page faults than in
+    # arithmetic); the bilinear weights are applied along x over all w + 1 rows, then along
+    # y (the same operations on the same values as the 2x2 formula, so the same sums)
+    chunk = min(_CHUNK, n)
+    blk = np.empty((chunk, 2, w + 1, w + 1), np.float32)
+    rows = np.empty((chunk, 2, w + 1, w), np.float32)  # interpolated along x
+    g = np.empty((chunk, 2, w, w), np.float32)  # and along y
+    prods = np.empty((chunk, 3, w * w), np.float32)
+    for lo in range(0, n, chunk):
+        m = min(chunk, n - lo)
+        sl = slice(lo, lo + m)
+        bk, hr, gg, pr = blk[:m], rows[:m], g[:m], prods[:m]
+        for c in (0, 1):
+            bk[:, c] = blocks[c][iv[sl], iu[sl]]
+        a, b = frac[sl, 0, None, None, None], frac[sl, 1, None, None, None]
+        np.multiply(bk[..., :-1], 1 - a, out=hr)
+        hr += bk[..., 1:] * a
+        np.multiply(hr[:, :, :-1], 1 - b, out=gg)
+        gg += hr[:, :, 1:] * b
+        gx, gy = gg[:, 0].reshape(m, w * w), gg[:, 1].reshape(m, w * w)
+        np.multiply(gx, gx, out=pr[:, 0])
+        np.multiply(gx, gy, out=pr[:, 1])
+        np.multiply(gy, gy, out=pr[:, 2])
+        sums[sl] = (pr.reshape(-1, w * w) @ basis).reshape(m, 3, 3)
+    return sums
 
 
 def _affine_gradient(
