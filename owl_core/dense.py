@@ -748,8 +748,16 @@ class _Fused:
     ok: BoolArray
 
 
-def _fuse(field: _Field, local: _Local, route: _Route | None, scale: float, dt_s: float) -> _Fused:
-    """Inverse-variance fusion of the two L routes; r/|t| and L at the current stamp."""
+def _fuse(
+    field: _Field,
+    local: _Local,
+    route: _Route | None,
+    scale: float,
+    dt_s: float,
+    speed_rate: float = 0.0,
+) -> _Fused:
+    """Inverse-variance fusion of the two L routes; r/|t| and L at the current stamp, in
+    units of the current speed (``speed_rate``: ``d ln|t|/dt``, 1/s)."""
     var_local = local.var * np.float32(scale)
     wl: F32 = local.ok / var_local
     wh: Any = np.float32(0.0)
@@ -776,7 +784,11 @@ def _fuse(field: _Field, local: _Local, route: _Route | None, scale: float, dt_s
     f2h = field.f2 * half
     c = np.sqrt(np.maximum(1.0 - f2h * half, 0.0))
     k = 1.0 - l_mid * half
+    # in units of the speed at the mid time; |t_mid| / |t_now| = exp(-s dt/2) takes it to
+    # the current speed (an accelerating camera: the same range is fewer seconds away)
     ros_now = np.sqrt(k * k + f2h * half) / tor
+    if speed_rate:
+        ros_now *= np.float32(math.exp(-speed_rate * 0.5 * dt_s))
     ok &= k * c + f2h * half > 0  # p_now . e_now > 0: still in front
     looming = (l_mid * c - f2h) / (tor * np.where(ok, ros_now, 1.0))
     tor2 += ~ok
@@ -899,6 +911,7 @@ def dense_owl(
     heading: F64 | None,
     heading_sigma_rad: float,
     stamp_ns: int,
+    speed_rate: float = 0.0,
 ) -> DenseResult:
     """One frame of the dense stage on working images: the chain of stages of the module
     docstring.
@@ -912,6 +925,9 @@ def dense_owl(
         heading: (3,) unit heading at the current stamp from the sparse engine, or None.
         heading_sigma_rad: its 1-sigma, rad.
         stamp_ns: the current stamp, ns.
+        speed_rate: ``d ln|t|/dt`` at the current stamp from the sparse engine, 1/s (0:
+            a constant speed): r/|t| and L are measured at the middle of the baseline, in
+            units of the speed there, and brought to the current speed.
 
     Returns:
         :class:`DenseResult`.
@@ -936,7 +952,7 @@ def dense_owl(
         route = _heading_route(field, s2, heading, heading_sigma_rad, o.heading_min_sin)
     else:
         reasons.append("no heading from the sparse engine: L from the local rule only")
-    fused = _fuse(field, local, route, o.local_variance_scale, dt_s)
+    fused = _fuse(field, local, route, o.local_variance_scale, dt_s, speed_rate)
     conf, confident = _confidence(o, tex, flow.fb2, field, fused)
     if not fused.ok.any():
         reasons.append("no pixel has a valid r/|t| (no translation signal)")
@@ -1028,6 +1044,7 @@ class DenseOwl:
         rotation: npt.ArrayLike | None,
         heading: npt.ArrayLike | None,
         heading_sigma_rad: float = 0.0,
+        speed_rate: float = 0.0,
     ) -> DenseResult | None:
         """Dense OWL between the image of ``previous_stamp_ns`` and this one; keeps this one.
 
@@ -1042,6 +1059,9 @@ class DenseOwl:
                 (no gyro).
             heading: (3,) unit heading at this stamp from the sparse engine, or None.
             heading_sigma_rad: the heading's 1-sigma, rad (inf is taken as 0.1).
+            speed_rate: ``d ln|t|/dt`` at this stamp from the sparse engine
+                (:attr:`~owl_core.types.FrameResult.speed_rate`), 1/s; 0 for a constant
+                speed (non-finite values are taken as 0).
 
         Returns:
             :class:`DenseResult`, or None for the first frame and after a stamp that did
@@ -1053,7 +1073,7 @@ class DenseOwl:
         pair = self.take(image, stamp_ns)
         if pair is None:
             return None
-        return self.measure(pair, rotation, heading, heading_sigma_rad)
+        return self.measure(pair, rotation, heading, heading_sigma_rad, speed_rate)
 
     def take(self, image: npt.NDArray[np.uint8], stamp_ns: int) -> ImagePair | None:
         """Keep this image (resized to the working grid); the pair to measure, or None for
@@ -1091,6 +1111,7 @@ class DenseOwl:
         rotation: npt.ArrayLike | None,
         heading: npt.ArrayLike | None,
         heading_sigma_rad: float = 0.0,
+        speed_rate: float = 0.0,
     ) -> DenseResult:
         """Dense OWL of an image pair from :meth:`take` (see :meth:`process`).
 
@@ -1111,7 +1132,10 @@ class DenseOwl:
         if not math.isfinite(sigma):
             sigma = 0.1
         dt = (pair.stamp_ns - pair.prev_stamp_ns) * 1e-9
-        result = dense_owl(self._setup, pair.prev, pair.cur, dt, rot, hv, sigma, pair.stamp_ns)
+        rate = float(speed_rate) if math.isfinite(speed_rate) else 0.0
+        result = dense_owl(
+            self._setup, pair.prev, pair.cur, dt, rot, hv, sigma, pair.stamp_ns, rate
+        )
         result.timings["resize"] = pair.resize_s
         result.timings["total"] = time.perf_counter() - t_start + pair.resize_s
         return result

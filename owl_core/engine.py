@@ -1638,4 +1638,5 @@ class OwlEngine:
             timings=log.timings,
             reasons=tuple(log.reasons),
             dropped=log.dropped,
+            speed_rate=self._speed_filter.rate,
         )

@@ -82,6 +82,10 @@ class FrameResult:
         reasons: human-readable reasons why points are missing or the frame
             produced none (empty when nothing was dropped).
         dropped: counts of dropped features per reason key.
+        speed_rate: ``d ln|t|/dt`` at the stamp, 1/s: the relative rate of change of the
+            camera's speed that the engine measured from frame to frame (r/|t| and L are
+            in units of the speed at the stamp); 0 without ``estimate_speed_change`` and
+            on frames without a heading.
     """
 
     stamp_ns: int
@@ -101,6 +105,7 @@ class FrameResult:
     timings: dict[str, float] = field(default_factory=dict)
     reasons: tuple[str, ...] = ()
     dropped: dict[str, int] = field(default_factory=dict)
+    speed_rate: float = 0.0
 
     @property
     def num_points(self) -> int:

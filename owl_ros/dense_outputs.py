@@ -128,6 +128,7 @@ class DenseJob:
             removed), or None without gyro coverage.
         heading: (3,) the engine's heading at the second stamp, or None.
         heading_sigma_rad: its 1-sigma, rad.
+        speed_rate: the engine's ``d ln|t|/dt`` at the second stamp, 1/s.
     """
 
     dense: DenseOwl
@@ -135,6 +136,7 @@ class DenseJob:
     rotation: Any
     heading: Any
     heading_sigma_rad: float
+    speed_rate: float = 0.0
 
 
 class DenseStage:
@@ -208,13 +210,17 @@ class DenseStage:
         else:
             with self._lock:
                 self._last.gyro_missing += 1
-        return DenseJob(dense, pair, rotation, result.heading, result.heading_sigma_rad)
+        return DenseJob(
+            dense, pair, rotation, result.heading, result.heading_sigma_rad, result.speed_rate
+        )
 
     def finish(self, job: DenseJob) -> DenseResult | None:
         """Measure a job and keep its result for ``owl: dense``; None after bad input
         (said in the status)."""
         try:
-            out = job.dense.measure(job.pair, job.rotation, job.heading, job.heading_sigma_rad)
+            out = job.dense.measure(
+                job.pair, job.rotation, job.heading, job.heading_sigma_rad, job.speed_rate
+            )
         except OwlError as err:
             with self._lock:
                 self._last.error = f"dense: {err}"

@@ -86,6 +86,7 @@ def _engine_pass(case: str, seconds: float, cache: Path | None) -> tuple[Any, li
                 rots,
                 res.heading,
                 res.heading_sigma_rad,
+                res.speed_rate,
                 frames.velocity[k],
                 frames.range_m[k],
                 mask,
@@ -110,11 +111,11 @@ def _run_dense(
     }
     cpu: list[float] = []
     cos_cone = math.cos(math.radians(options.ttc_cone_deg))
-    for k, (stamp, image, rots, heading, sigma, vel, rng, mask) in enumerate(frames):
+    for k, (stamp, image, rots, heading, sigma, rate, vel, rng, mask) in enumerate(frames):
         prev = dense.previous_stamp_ns
         rot = rots.get(prev) if prev is not None else None
         c0 = time.process_time()
-        res = dense.process(image, stamp, rot, heading, sigma)
+        res = dense.process(image, stamp, rot, heading, sigma, rate)
         cpu.append(time.process_time() - c0)
         if res is None or k < WARMUP or heading is None:
             continue
@@ -266,7 +267,7 @@ def run_walk(folder: Path, out_dir: Path, log: Any) -> dict[str, Any]:
         if prev is not None and eng.gyro.covers(prev, stamp):
             rot = eng.gyro.relative_rotation(prev, stamp, eng.gyro_bias)
         c0 = time.process_time()
-        d = dense.process(img, stamp, rot, res.heading, res.heading_sigma_rad)
+        d = dense.process(img, stamp, rot, res.heading, res.heading_sigma_rad, res.speed_rate)
         cpu.append(time.process_time() - c0)
         if d is None or res.heading is None:
             fractions.append(math.nan)
@@ -354,7 +355,14 @@ def dense_figure(sim: Any, frames: Any, path: Path, frame: int | None = None) ->
         rot = None
         if prev is not None and eng.gyro.covers(prev, stamp):
             rot = eng.gyro.relative_rotation(prev, stamp, eng.gyro_bias)
-        res = dense.process(frames.images[k], stamp, rot, sparse.heading, sparse.heading_sigma_rad)
+        res = dense.process(
+            frames.images[k],
+            stamp,
+            rot,
+            sparse.heading,
+            sparse.heading_sigma_rad,
+            sparse.speed_rate,
+        )
     if res is None:
         raise ValueError("dense figure: no dense result (too few frames)")
     o = dense.options
