@@ -45,6 +45,7 @@ import os
 import platform
 import resource
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -397,7 +398,9 @@ def load_frames(
 
 def _store(path: Path, frames: Frames) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
+    # a name of this process's own: two processes rendering the same case (two benches, a
+    # Ray batch) each write their file and the last rename wins, with identical contents
+    tmp = path.with_name(f"{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
     n, h, w = frames.images.shape
     np.savez(
         tmp,

@@ -248,3 +248,19 @@ def test_rolling_shutter_case_runs_owl_compensating_and_ignoring_the_readout(tmp
         bench.run_case(bench.Case("brisk"), profile, bench.load_frames(glob, None), glob)
     )
     assert set(plain["methods"]) == set(bench.METHODS)  # a global-shutter case: OWL once
+
+
+def test_concurrent_renders_of_one_case_share_the_cache(tiny, tmp_path):
+    """Two processes (two benches, a Ray batch) storing the same case at once each write a
+    file of their own and rename it into place: no error, one file, nothing left over."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    sim = bench._sim(bench.Case("street"), TINY)
+    frames = bench.load_frames(sim, None)
+    path = tmp_path / "street.npz"
+    with ThreadPoolExecutor(8) as pool:
+        for f in [pool.submit(bench._store, path, frames) for _ in range(16)]:
+            f.result()
+    assert [p.name for p in tmp_path.iterdir()] == ["street.npz"]
+    again = np.load(path)
+    np.testing.assert_array_equal(again["images"], frames.images)
