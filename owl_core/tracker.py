@@ -81,6 +81,9 @@ class TrackerOptions:
         quality_level: Shi-Tomasi threshold relative to the strongest corner of
             the image, in (0, 1).
         block_size: Shi-Tomasi structure-tensor window, pixels (odd, >= 3).
+        detect_level: pyramid level whose image the corner search runs on (0: the input
+            image; 1: ``cv2.pyrDown`` of it, a quarter of the pixels, with the distances
+            halved and the corners mapped back to the input's pixels), >= 0.
         border_px: features closer than this to the image border are not
             detected and are dropped when they get there, pixels.
         lk_window_px: Lucas-Kanade window side, pixels (odd, >= 5).
@@ -164,6 +167,7 @@ class TrackerOptions:
     min_distance_px: float = 8.0
     quality_level: float = 0.01
     block_size: int = 5
+    detect_level: int = 0
     border_px: float = 8.0
     lk_window_px: int = 15
     lk_levels: int = 3
@@ -196,6 +200,7 @@ class TrackerOptions:
             "grid_cols": (self.grid_cols, 1),
             "grid_rows": (self.grid_rows, 1),
             "block_size": (self.block_size, 3),
+            "detect_level": (self.detect_level, 0),
             "lk_window_px": (self.lk_window_px, 5),
             "lk_levels": (self.lk_levels, 0),
             "lk_predicted_levels": (self.lk_predicted_levels, 0),
@@ -669,39 +674,60 @@ class FeatureTracker:
         return new_pos, reason
 
     def _detect(self, img: npt.NDArray[np.uint8], existing: FloatArray) -> FloatArray:
-        """New corners (K, 2), grid-balanced, away from ``existing`` (M, 2) features."""
+        """New corners (K, 2), grid-balanced, away from ``existing`` (M, 2) features: on
+        the ``detect_level`` image, and where that finds too few (texture finer than its
+        pixels) the rest on the input image."""
+        found = self._detect_at(img, existing, self.options.detect_level)
+        if self.options.detect_level > 0 and existing.shape[0] + found.shape[0] < (
+            self.options.max_features
+        ):
+            more = self._detect_at(img, np.concatenate([existing, found]), 0)
+            found = np.concatenate([found, more])
+        return found
+
+    def _detect_at(
+        self, img: npt.NDArray[np.uint8], existing: FloatArray, level: int
+    ) -> FloatArray:
+        """:meth:`_detect` on pyramid level ``level`` of ``img`` alone."""
         opts = self.options
         needed = opts.max_features - existing.shape[0]
         if needed <= 0:
             return np.zeros((0, 2))
         height, width = img.shape
-        mask = np.zeros((height, width), dtype=np.uint8)
-        b = math.ceil(opts.border_px)
-        if 2 * b >= height or 2 * b >= width:
+        search = img
+        scale = 1.0
+        for _ in range(level):  # pixel i of level l+1 is centred on 2i of l
+            search = np.asarray(cv2.pyrDown(search), dtype=np.uint8)
+            scale *= 2.0
+        s_h, s_w = search.shape
+        mask = np.zeros((s_h, s_w), dtype=np.uint8)
+        b = math.ceil(opts.border_px / scale)
+        if 2 * b >= s_h or 2 * b >= s_w:
             return np.zeros((0, 2))
-        mask[b : height - b, b : width - b] = 255
-        if existing.shape[0] > 0 and opts.min_distance_px > 0:
+        mask[b : s_h - b, b : s_w - b] = 255
+        min_distance = opts.min_distance_px / scale
+        if existing.shape[0] > 0 and min_distance > 0:
             # Forbid disks of radius min_distance around the live features:
             # mark their pixels, dilate with a disk, clear those pixels.
-            occupied = np.zeros((height, width), dtype=np.uint8)
-            ij = np.rint(existing).astype(np.int64)
-            ij[:, 0] = np.clip(ij[:, 0], 0, width - 1)
-            ij[:, 1] = np.clip(ij[:, 1], 0, height - 1)
+            occupied = np.zeros((s_h, s_w), dtype=np.uint8)
+            ij = np.rint(existing / scale).astype(np.int64)
+            ij[:, 0] = np.clip(ij[:, 0], 0, s_w - 1)
+            ij[:, 1] = np.clip(ij[:, 1], 0, s_h - 1)
             occupied[ij[:, 1], ij[:, 0]] = 255
-            r = math.ceil(opts.min_distance_px)
+            r = math.ceil(min_distance)
             disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
             cv2.subtract(mask, cv2.dilate(occupied, disk), dst=mask)  # 255 - 255 = 0
         corners = cv2.goodFeaturesToTrack(
-            img,
+            search,
             maxCorners=3 * needed + 10 * opts.grid_cols * opts.grid_rows,
             qualityLevel=opts.quality_level,
-            minDistance=opts.min_distance_px,
+            minDistance=min_distance,
             mask=mask,
             blockSize=opts.block_size,
         )
         if corners is None:
             return np.zeros((0, 2))
-        pts = corners.reshape(-1, 2).astype(np.float64)  # strongest first
+        pts = corners.reshape(-1, 2).astype(np.float64) * scale  # strongest first
         # Grid bucketing: each cell may add up to its share minus what it holds.
         ncells = self._ncells()
         cell_new = self._cells(pts, width, height)

@@ -430,6 +430,16 @@ PARAMS: tuple[Param, ...] = (
         engine="tracker.min_distance_px",
     ),
     Param(
+        "tracker_detect_level",
+        "int",
+        _T.detect_level,
+        "pyramid level the corner search runs on (0: the image; 1: half size, a quarter of "
+        "the detection CPU; README 'Cost per frame' says what it costs)",
+        low=0,
+        high=3,
+        engine="tracker.detect_level",
+    ),
+    Param(
         "tracker_fb_threshold_px",
         "double",
         _T.fb_threshold_px,

@@ -407,6 +407,30 @@ def test_detection_is_spread_and_spaced() -> None:
     assert np.min(dist) >= 8.0 - 0.75  # disk mask on rounded positions
 
 
+def test_corners_searched_on_the_half_size_image_are_spread_spaced_and_track() -> None:
+    """``detect_level=1``: the search runs on ``pyrDown`` of the image, the distances
+    halved; its corners (pixel i there is centred on 2i here) are spaced and inside the
+    border as at full size, fill the grid, and track a sub-pixel shift as well."""
+    opts = replace(OPTS, detect_level=1)
+    tracker = FeatureTracker(opts)
+    first = tracker.track(IMAGE0, 1000)
+    assert first.num_tracks == opts.max_features
+    assert np.all(first.pixels == 2.0 * np.rint(first.pixels / 2.0))  # level-1 pixels
+    dist, _ = cKDTree(first.pixels).query(first.pixels, k=2)
+    assert np.min(dist[:, 1]) >= opts.min_distance_px - 1e-9
+    b = opts.border_px
+    assert np.all((first.pixels >= b - 0.5) & (first.pixels <= [W - 0.5 - b, H - 0.5 - b]))
+    cols = np.clip(((first.pixels[:, 0] + 0.5) * 8 // W).astype(int), 0, 7)
+    rows = np.clip(((first.pixels[:, 1] + 0.5) * 6 // H).astype(int), 0, 5)
+    assert np.bincount(rows * 8 + cols, minlength=48).min() >= 2
+    d = np.array([0.37, -0.61])
+    second = tracker.track(_shifted(d), 2000)
+    old = _tracked(second)
+    assert np.count_nonzero(old) > 0.9 * first.num_tracks
+    err = np.linalg.norm(second.pixels[old] - second.history[old, 1] - d, axis=1)
+    assert np.max(err) < 0.1
+
+
 def test_reset_and_size_change() -> None:
     tracker = FeatureTracker(OPTS)
     a = tracker.track(IMAGE0, 0)
