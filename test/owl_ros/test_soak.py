@@ -137,9 +137,13 @@ def test_short_soak_reports_from_real_samples(ros_domain_env):
     assert rep["rss"]["growth_percent"] == pytest.approx(growth)
     assert rep["rss"]["ok"] == (growth < 10.0)
     frames = rep["frames"]
-    # 12 s at 30 Hz from the feeder; the node processed most of them
+    # 12 s at 30 Hz from the feeder; every image the node received was processed or dropped
+    # for a newer one (newest wins: how many it keeps is the machine's speed, `make soak`'s
+    # figure, not asserted here), and it worked through the whole soak
     assert 330 <= frames["images_sent"] <= 370
-    assert frames["processed"] >= 0.5 * frames["images_sent"]
+    assert frames["processed"] + frames["dropped_queue_full"] >= 0.9 * frames["images_received"]
+    assert frames["images_received"] >= 0.9 * frames["images_sent"]
+    assert frames["processed"] >= 60
     assert frames["clouds_received"] >= frames["processed"] - 2
     ft = rep["frame_time"]
     assert ft["cpu_ms_per_frame_first"] > 0 and ft["cpu_ms_per_frame_last"] > 0
