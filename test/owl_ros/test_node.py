@@ -245,8 +245,10 @@ def stop_node(node: LiveNode) -> tuple[int, str]:
     return code, err
 
 
-#: frames with points a live run must give at least (the contract checks need some)
-MIN_FULL = 5
+#: frames with points a live run must give at least (the contract checks read the last
+#: one; two show it was not a lone frame). On a slow machine newest-wins may keep only a
+#: handful: the looping-bag test's second loop kept 4 of 12 on a 2-core VM at 107 ms a frame
+MIN_FULL = 2
 
 
 def newest_wins_latency_bound_ms(slowest_cycle_ms: float, queue: int = 2) -> float:
