@@ -787,8 +787,7 @@ def _fuse(
     # in units of the speed at the mid time; |t_mid| / |t_now| = exp(-s dt/2) takes it to
     # the current speed (an accelerating camera: the same range is fewer seconds away)
     ros_now = np.sqrt(k * k + f2h * half) / tor
-    if speed_rate:
-        ros_now *= np.float32(math.exp(-speed_rate * 0.5 * dt_s))
+    ros_now *= np.float32(math.exp(-speed_rate * 0.5 * dt_s))
     ok &= k * c + f2h * half > 0  # p_now . e_now > 0: still in front
     looming = (l_mid * c - f2h) / (tor * np.where(ok, ros_now, 1.0))
     tor2 += ~ok

@@ -318,6 +318,7 @@ def _empty_result(
     timings: dict[str, float],
     reasons: list[str],
     dropped: dict[str, int],
+    speed_rate: float,
 ) -> FrameResult:
     return FrameResult(
         stamp_ns=stamp_ns,
@@ -337,6 +338,7 @@ def _empty_result(
         timings=timings,
         reasons=tuple(reasons),
         dropped=dropped,
+        speed_rate=speed_rate,
     )
 
 
@@ -929,7 +931,14 @@ class OwlEngine:
         log.add(skip.timings, skip.dropped, (*skip.notes, skip.reason))
         log.timings["total"] = self.clock() - t_start
         return _empty_result(
-            stamp, None, math.inf, self._bias.bias, log.timings, log.reasons, log.dropped
+            stamp,
+            None,
+            math.inf,
+            self._bias.bias,
+            log.timings,
+            log.reasons,
+            log.dropped,
+            self._speed_filter.rate,
         )
 
     def _track(self, img: npt.NDArray[np.uint8], stamp: int) -> _Tracked:

@@ -85,7 +85,7 @@ class FrameResult:
         speed_rate: ``d ln|t|/dt`` at the stamp, 1/s: the relative rate of change of the
             camera's speed that the engine measured from frame to frame (r/|t| and L are
             in units of the speed at the stamp); 0 without ``estimate_speed_change`` and
-            on frames without a heading.
+            until its filter has a measurement.
     """
 
     stamp_ns: int

@@ -136,7 +136,7 @@ class DenseJob:
     rotation: Any
     heading: Any
     heading_sigma_rad: float
-    speed_rate: float = 0.0
+    speed_rate: float
 
 
 class DenseStage:
