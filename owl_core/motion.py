@@ -636,7 +636,11 @@ class FusedLooming:
 
 
 def fuse_looming(
-    local: LocalFit | None, heading: HeadingRoute | None, n: int, max_disagreement: float = 4.0
+    local: LocalFit | None,
+    heading: HeadingRoute | None,
+    n: int,
+    max_disagreement: float = 4.0,
+    local_variance_scale: float = 1.0,
 ) -> FusedLooming:
     """Fuse L from the local rule and the heading route by inverse variance.
 
@@ -648,6 +652,8 @@ def fuse_looming(
         heading: heading-route L for the N features, or None.
         n: number of features N.
         max_disagreement: gating threshold, in combined standard deviations.
+        local_variance_scale: the local rule's variance is taken as its stated variance
+            times this (> 0) in the gate, the weights and the fused variance.
 
     Returns:
         :class:`FusedLooming`.
@@ -656,7 +662,7 @@ def fuse_looming(
     l_ok = local.valid & np.isfinite(local.variance) if local is not None else zero
     h_ok = heading.valid & np.isfinite(heading.variance) if heading is not None else zero
     l_val = local.looming if local is not None else np.full(n, np.nan)
-    l_var = local.variance if local is not None else np.full(n, np.inf)
+    l_var = local.variance * local_variance_scale if local is not None else np.full(n, np.inf)
     h_val = heading.looming if heading is not None else np.full(n, np.nan)
     h_var = heading.variance if heading is not None else np.full(n, np.inf)
     both = l_ok & h_ok

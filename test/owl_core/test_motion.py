@@ -194,6 +194,38 @@ def test_heading_route_exact_and_fusion_flags() -> None:
     np.testing.assert_allclose(only_local.looming, fit.looming)
 
 
+def test_fusion_scales_the_local_variance_in_weights_gate_and_result() -> None:
+    """With the local variance taken as s * v_l: fused = (L_l / (s v_l) + L_h / v_h) /
+    (1 / (s v_l) + 1 / v_h), variance 1 / (1 / (s v_l) + 1 / v_h); a gap within the gate
+    only after the scaling keeps both routes."""
+    n = 3
+    local = motion.LocalFit(
+        looming=np.array([1.0, 1.0, 1.0]),
+        variance=np.array([0.01, 0.04, 0.01]),
+        slant=np.zeros((n, 2)),
+        curl=np.zeros(n),
+        residual_rms=np.zeros(n),
+        quality=np.ones(n),
+        num_used=np.full(n, 8),
+        valid=np.ones(n, dtype=bool),
+    )
+    route = motion.HeadingRoute(
+        np.array([1.2, 0.9, 1.85]), np.array([0.01, 0.01, 0.01]), np.ones(n, dtype=bool)
+    )
+    s = 4.0
+    fused = motion.fuse_looming(local, route, n, max_disagreement=4.0, local_variance_scale=s)
+    wl, wh = 1.0 / (s * local.variance[:2]), 1.0 / route.variance[:2]
+    np.testing.assert_allclose(
+        fused.looming[:2], (wl * local.looming[:2] + wh * route.looming[:2]) / (wl + wh)
+    )
+    np.testing.assert_allclose(fused.variance[:2], 1.0 / (wl + wh))
+    # point 2: the gap 0.85 is 6.0 sigmas of sqrt(0.01 + 0.01), 3.8 of sqrt(0.04 + 0.01)
+    assert fused.flags[2] == PointFlag.L_LOCAL | PointFlag.L_HEADING
+    plain = motion.fuse_looming(local, route, n, max_disagreement=4.0)
+    assert plain.flags[2] == PointFlag.L_LOCAL and plain.looming[2] == 1.0
+    np.testing.assert_allclose(plain.variance[:2], 1.0 / (1.0 / local.variance[:2] + wh))
+
+
 def test_heading_route_invalid_at_focus_of_expansion() -> None:
     h = np.array([0.0, 0.0, 1.0])
     route = motion.looming_from_heading(np.array([h]), np.zeros((1, 3)), h)
