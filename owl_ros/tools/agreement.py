@@ -89,8 +89,9 @@ def heading_agreement(
     Returns:
         {"frames", "owl_headings", "final_gyro_bias" (IMU frame, rad/s), "per_gap": {gap:
         {"baseline_headings", "both", "median_deg", "p90_deg", "angles_deg": [...],
-        "gyro_vs_5pt_median_deg", "paired": {"frames", "owl_vs_5pt_median_deg",
-        "gyro_vs_5pt_median_deg", "excess_deg", "excess_90_deg": [lo, hi]}}}}.
+        "gyro_vs_5pt_median_deg", "paired": {"frames", "owl_vs_5pt_median_deg" (on the
+        frames where the gyro-aided heading exists too), "excess_deg", "excess_90_deg":
+        [lo, hi]}}}}.
     """
     from rclpy.serialization import deserialize_message
 
@@ -185,7 +186,6 @@ def heading_agreement(
             "paired": {
                 "frames": int(p.size),
                 "owl_vs_5pt_median_deg": float(np.median(p)) if p.size else None,
-                "gyro_vs_5pt_median_deg": float(np.median(b)) if b.size else None,
                 "excess_deg": excess,
                 "excess_90_deg": [lo, hi],
             },
