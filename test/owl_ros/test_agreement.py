@@ -40,19 +40,21 @@ def test_median_excess_rejects_unpaired_values() -> None:
     assert all(np.isnan(median_excess([], [])))
 
 
-def _walk_bag(tmp_path: Path) -> Path:
+@pytest.fixture(scope="module")
+def walk_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The whole walk imported once for the module's tests."""
     if not (SHARED / "mav0").is_dir():
         msg = f"shared recording realsense_walk not found ({SHARED})"
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail(msg)
         pytest.skip(msg)
-    bag = tmp_path / "walk"
+    bag = tmp_path_factory.mktemp("agreement") / "walk"
     assert import_main([str(SHARED), str(bag), "-q"]) == 0  # the whole recording
     return bag
 
 
 @pytest.mark.slow
-def test_owl_heading_agrees_with_the_5_point_heading_on_the_walk(tmp_path: Path) -> None:
+def test_owl_heading_agrees_with_the_5_point_heading_on_the_walk(walk_bag: Path) -> None:
     """The bound: the two-view estimates' own scatter on the same frames, and its sampling
     error.
 
@@ -67,7 +69,7 @@ def test_owl_heading_agrees_with_the_5_point_heading_on_the_walk(tmp_path: Path)
     5-point heading flips sign on a third of its frames: the excess moved by 10 deg between
     two machines running the same code (OpenCV's RANSAC differs with the CPU's SIMD).
     """
-    out = heading_agreement(_walk_bag(tmp_path), (1, 2, 4))
+    out = heading_agreement(walk_bag, (1, 2, 4))
     for gap in (1, 2, 4):
         q = out["per_gap"][gap]["paired"]
         assert q["frames"] >= 100, (gap, q)  # enough frames to judge
@@ -75,10 +77,10 @@ def test_owl_heading_agrees_with_the_5_point_heading_on_the_walk(tmp_path: Path)
 
 
 @pytest.mark.slow
-def test_the_walk_agreement_bound_rejects_a_worse_heading(tmp_path: Path) -> None:
+def test_the_walk_agreement_bound_rejects_a_worse_heading(walk_bag: Path) -> None:
     """The bound has power: the quadratic track fit (``fit_order: 2``), whose rate noise on
     tracks of 3 to 5 frames is several times the linear fit's, is rejected at gap 4."""
-    out = heading_agreement(_walk_bag(tmp_path), (4,), params={"fit_order": 2})
+    out = heading_agreement(walk_bag, (4,), params={"fit_order": 2})
     q = out["per_gap"][4]["paired"]
     assert q["frames"] >= 100, q
     assert q["excess_90_deg"][0] > 0.0, q
