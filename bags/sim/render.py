@@ -19,9 +19,16 @@ every rectangle is intersected with the rays inside its conservative image bound
 rectangle is textured once.
 
 Anti-aliasing: ``supersample`` x ``supersample`` rays per pixel (box filter) for edges, and
-trilinear mip-mapped texture lookups whose level follows the footprint of one ray on the
-surface (``range * ray_spacing / |cos(incidence)|``, the larger axis of the footprint), so
-far or grazing surfaces are low-pass filtered instead of shimmering.
+anisotropic trilinear mip-mapped texture lookups that integrate over the footprint of one
+ray on the surface, so far or grazing surfaces are low-pass filtered instead of shimmering.
+The footprint is an ellipse: ``range * ray_spacing`` across and that over
+``|cos(incidence)|`` along the ray's direction on the surface. A single lookup at the level
+of the larger axis (isotropic mip-mapping) would blur a grazing surface across by the
+ratio of the two (about 13 pixels sideways for ground 20 m ahead of a camera 1.5 m up),
+much more than a camera's pixel does, with a blur that changes as the surface approaches;
+instead ``n = ceil(ratio)`` lookups (at most ``anisotropy``) spread along the long axis are
+averaged, each at the level of ``long / n`` (as GPUs filter anisotropically), so a pixel
+sees about the area it covers.
 
 Textures (:func:`texture`) are periodic 1024 x 1024 tiles of thresholded pink noise: edges
 and blobs at every scale from the texel to the tile, so features exist at every range.
@@ -387,6 +394,8 @@ class Renderer:
         encoding: "mono8" or "rgb8".
         mipmap: filter textures by the ray footprint (True). False samples the finest
             level only (aliased; for comparisons and tests).
+        anisotropy: most lookups along the long axis of a grazing ray's footprint (1..64);
+            1 is isotropic mip-mapping (the level of the long axis: blurred across).
 
     Raises:
         ScenarioError: invalid supersample, noise or encoding (names the value).
@@ -401,6 +410,7 @@ class Renderer:
         seed: int = 0,
         encoding: str = "mono8",
         mipmap: bool = True,
+        anisotropy: int = 16,
     ) -> None:
         if not isinstance(supersample, int) or not 1 <= supersample <= 4:
             msg = f"supersample must be an integer in 1..4, got {supersample!r}"
@@ -411,12 +421,16 @@ class Renderer:
         if encoding not in ("mono8", "rgb8"):
             msg = f"encoding must be mono8 or rgb8, got {encoding!r}"
             raise ScenarioError(msg)
+        if not isinstance(anisotropy, int) or not 1 <= anisotropy <= 64:
+            msg = f"anisotropy must be an integer in 1..64, got {anisotropy!r}"
+            raise ScenarioError(msg)
         self.camera = camera
         self.supersample = supersample
         self.noise_sigma = float(noise_sigma)
         self.seed = int(seed)
         self.encoding = encoding
         self.mipmap = bool(mipmap)
+        self.anisotropy = anisotropy
         self._fine = _ray_grid(camera, supersample)
         self._centre = self._fine if supersample == 1 else _ray_grid(camera, 1)
 
@@ -552,10 +566,10 @@ class Renderer:
             t = best_t[win][sel]
             if "rows" in loc:  # rolling shutter: each selected ray's row pose
                 rows = (np.nonzero(sel)[0] + win[0].start) // self._subrows(grid)
-                su, sv, cos = _surface_rows(loc, rows, d, t)
+                su, sv, cos, along = _surface_rows(loc, rows, d, t)
             else:
-                su, sv, cos = _surface(loc, d, t)
-            shade[win][sel] = self._texture(rect, su, sv, cos, t, grid.spacing[win][sel])
+                su, sv, cos, along = _surface(loc, d, t)
+            shade[win][sel] = self._texture(rect, su, sv, cos, t, grid.spacing[win][sel], along)
         return shade
 
     def _subrows(self, grid: _RayGrid) -> int:
@@ -709,20 +723,36 @@ class Renderer:
             return None
         return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
 
-    def _texture(self, rect: Rect, su: F32, sv: F32, cos: F32, t: F32, spacing: F32) -> F32:
+    def _texture(
+        self, rect: Rect, su: F32, sv: F32, cos: F32, t: F32, spacing: F32, along: F32
+    ) -> F32:
         """Grey level of surface points (su, sv) m on ``rect`` seen at range t (m) and
-        incidence cosine ``cos`` by rays ``spacing`` rad apart."""
-        footprint = t * spacing / cos
-        inv_texel = np.float32(1.0 / rect.texel_m)
-        with np.errstate(divide="ignore"):
-            lod = np.log2(np.maximum(footprint * inv_texel, np.float32(1.0)))
-        if not self.mipmap:
-            lod = np.zeros_like(lod)
+        incidence cosine ``cos`` by rays ``spacing`` rad apart; ``along`` (M, 2): the unit
+        direction (su, sv) in which each footprint is long (the ray's direction on the
+        surface)."""
         tex = texture(rect.texture_seed % TEXTURE_POOL)
+        inv_texel = np.float32(1.0 / rect.texel_m)
         # decorrelate rectangles sharing a tile: a texel offset per rectangle seed
-        ox = np.float32((rect.texture_seed * 7919) % TEXTURE_SIZE)
-        oy = np.float32((rect.texture_seed * 104729) % TEXTURE_SIZE)
-        val = tex.sample(su * inv_texel + ox, sv * inv_texel + oy, lod)
+        x0 = su * inv_texel + np.float32((rect.texture_seed * 7919) % TEXTURE_SIZE)
+        y0 = sv * inv_texel + np.float32((rect.texture_seed * 104729) % TEXTURE_SIZE)
+        long_px = t * spacing / cos * inv_texel  # footprint axes in level-0 texels
+        if not self.mipmap:
+            val = tex.sample(x0, y0, np.zeros_like(long_px))
+        else:
+            # n lookups spread over the long axis, each filtering long / n (>= the short
+            # axis t * spacing: n <= 1 / cos); n = 1 where the footprint is round
+            n = np.clip(np.ceil(np.float32(1.0) / cos - np.float32(1e-3)), 1, self.anisotropy)
+            n = n.astype(np.float32)
+            with np.errstate(divide="ignore"):
+                lod = np.log2(np.maximum(long_px / n, np.float32(1.0)))
+            val = tex.sample(x0, y0, lod) if self.anisotropy == 1 else np.zeros_like(x0)
+            for i in range(int(n.max()) if self.anisotropy > 1 else 0):
+                m = np.flatnonzero(n > i)
+                # sample i of n at (i + 1/2) / n - 1/2 of the long axis
+                s = ((np.float32(i) + np.float32(0.5)) / n[m] - np.float32(0.5)) * long_px[m]
+                val[m] += tex.sample(x0[m] + s * along[m, 0], y0[m] + s * along[m, 1], lod[m])
+            if self.anisotropy > 1:
+                val /= n
         normal_w = rect.normal
         lambert = 0.6 + 0.4 * abs(float(normal_w @ LIGHT_DIR))
         gain = np.float32(255.0 * rect.brightness * lambert)
@@ -730,25 +760,37 @@ class Renderer:
         return out
 
 
-def _surface(loc: dict[str, object], d: F32, t: F32) -> tuple[F32, F32, F32]:
-    """Surface coordinates (su, sv), m, and |incidence cosine| of rays d (M, 3) hitting a
-    rectangle (camera-frame ``loc``) at ranges t (M,)."""
+def _surface(loc: dict[str, object], d: F32, t: F32) -> tuple[F32, F32, F32, F32]:
+    """Surface coordinates (su, sv), m, |incidence cosine| of rays d (M, 3) hitting a
+    rectangle (camera-frame ``loc``) at ranges t (M,), and (M, 2) the unit direction of
+    each ray on the surface in (su, sv) (where its footprint is long)."""
     o, u, v, n = (np.asarray(loc[name], np.float32) for name in ("o", "u", "v", "n"))
-    su = t * (d @ u) - np.float32(o @ u)
-    sv = t * (d @ v) - np.float32(o @ v)
+    du, dv = d @ u, d @ v
+    su = t * du - np.float32(o @ u)
+    sv = t * dv - np.float32(o @ v)
     cos = np.maximum(np.abs(d @ n), np.float32(1e-3))
-    return su, sv, cos
+    return su, sv, cos, _unit2(du, dv)
+
+
+def _unit2(du: F32, dv: F32) -> F32:
+    """(M, 2) unit vectors along (du, dv) (M,) each; (1, 0) where both vanish."""
+    norm = np.hypot(du, dv)
+    flat = norm < np.float32(1e-9)
+    out: F32 = np.stack([np.where(flat, 1.0, du), np.where(flat, 0.0, dv)], axis=1)
+    out /= np.where(flat, np.float32(1.0), norm)[:, None]
+    return out
 
 
 def _surface_rows(
     loc: dict[str, object], rows: npt.NDArray[np.int64], d: F32, t: F32
-) -> tuple[F32, F32, F32]:
+) -> tuple[F32, F32, F32, F32]:
     """:func:`_surface` with the rectangle per image row: ray i in row ``rows[i]``."""
     o, u, v, n = (np.asarray(loc[name], np.float32)[rows] for name in ("o", "u", "v", "n"))
-    su = t * np.einsum("mi,mi->m", d, u) - np.einsum("mi,mi->m", o, u)
-    sv = t * np.einsum("mi,mi->m", d, v) - np.einsum("mi,mi->m", o, v)
+    du, dv = np.einsum("mi,mi->m", d, u), np.einsum("mi,mi->m", d, v)
+    su = t * du - np.einsum("mi,mi->m", o, u)
+    sv = t * dv - np.einsum("mi,mi->m", o, v)
     cos = np.maximum(np.abs(np.einsum("mi,mi->m", d, n)), np.float32(1e-3))
-    return su, sv, cos
+    return su, sv, cos, _unit2(du, dv)
 
 
 def _unit_luma(tint: tuple[float, float, float]) -> tuple[float, float, float]:
