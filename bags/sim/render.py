@@ -745,14 +745,13 @@ class Renderer:
             n = n.astype(np.float32)
             with np.errstate(divide="ignore"):
                 lod = np.log2(np.maximum(long_px / n, np.float32(1.0)))
-            val = tex.sample(x0, y0, lod) if self.anisotropy == 1 else np.zeros_like(x0)
-            for i in range(int(n.max()) if self.anisotropy > 1 else 0):
+            val = np.zeros_like(x0)
+            for i in range(int(n.max())):  # n = 1 (anisotropy 1): one lookup at s = 0
                 m = np.flatnonzero(n > i)
                 # sample i of n at (i + 1/2) / n - 1/2 of the long axis
                 s = ((np.float32(i) + np.float32(0.5)) / n[m] - np.float32(0.5)) * long_px[m]
                 val[m] += tex.sample(x0[m] + s * along[m, 0], y0[m] + s * along[m, 1], lod[m])
-            if self.anisotropy > 1:
-                val /= n
+            val /= n
         normal_w = rect.normal
         lambert = 0.6 + 0.4 * abs(float(normal_w @ LIGHT_DIR))
         gain = np.float32(255.0 * rect.brightness * lambert)
