@@ -173,6 +173,13 @@ class EngineOptions:
             times ``sqrt(1 + (m / this)^2)``), dimensionless (flow-noise sigmas): a
             persistent error is down-weighted while it lasts, and a track that recovers
             regains its weight. Whether the camera translates is judged without it.
+        edge_radius_px: tracks whose flow magnitude differs from a neighbour's within this
+            radius (pixels) as across a depth edge enter the heading fit with a smaller
+            weight (:func:`owl_core.heading.depth_edge_weights`: an LK window across the
+            edge tracks a mix of two surfaces, an error the bias filter would take for a
+            rotation); None: every track at full weight.
+        edge_log_scale: the change of log range (= of log flow magnitude) between
+            neighbours at which that weight is 1/2, dimensionless.
         range_filter: filter each track's r/|t| over frames: the previous frame's scaled
             point, moved on by the elapsed time (minus the heading x dt, rescaled by the
             speed change, rotated with the gyro into this frame), predicts this frame's,
@@ -228,6 +235,8 @@ class EngineOptions:
     heading_filter: hf.TwoModelOptions | None = field(default_factory=hf.TwoModelOptions)
     residual_memory_s: float | None = 0.3
     residual_memory_sigma: float = 0.5
+    edge_radius_px: float | None = 12.0
+    edge_log_scale: float = 0.1
     range_filter: bool = True
     range_process_rel: float = 0.05
     range_gate: float = 4.0
@@ -286,6 +295,7 @@ class EngineOptions:
             "max_frame_gap_s",
             "quality_rel_sigma",
             "residual_memory_sigma",
+            "edge_log_scale",
             "range_gate",
         )
         for name in positive:
@@ -307,6 +317,12 @@ class EngineOptions:
         ):
             raise InvalidInputError(
                 f"residual_memory_s must be positive or None, got {self.residual_memory_s!r}"
+            )
+        if self.edge_radius_px is not None and not (
+            math.isfinite(self.edge_radius_px) and self.edge_radius_px > 0
+        ):
+            raise InvalidInputError(
+                f"edge_radius_px must be positive or None, got {self.edge_radius_px!r}"
             )
         if not (isinstance(self.bias_scatter_window, int) and 0 <= self.bias_scatter_window):
             raise InvalidInputError(
@@ -1190,6 +1206,18 @@ class OwlEngine:
         else:
             prior = opts.no_gyro_rotation_sigma**2 * np.eye(3)
         memory = self._residual_memory(integ.ids)
+        weights = 1.0 / (1.0 + (memory / opts.residual_memory_sigma) ** 2)
+        if opts.edge_radius_px is not None:
+            weights = weights * hd.depth_edge_weights(
+                integ.pixels,
+                integ.e,
+                integ.f,
+                integ.f_sigma,
+                self._state.last_heading,
+                opts.edge_radius_px,
+                opts.edge_log_scale,
+                min_sin=opts.heading.min_sin,
+            )
         hopts = opts.heading
         flt = self._heading_filter
         if flt.heading is not None and flt.weights[1] >= opts.confirm_below_turning:
@@ -1202,7 +1230,7 @@ class OwlEngine:
             options=hopts,
             rng=self._rng,
             initial_heading=self._state.last_heading,
-            fit_weights=1.0 / (1.0 + (memory / opts.residual_memory_sigma) ** 2),
+            fit_weights=weights,
         )
         self._remember_residuals(integ.ids, stamp, est.residuals, memory)
         if integ.with_gyro and opts.estimate_bias:

@@ -399,3 +399,47 @@ def test_confirmed_warm_start_refined_alone_and_a_wrong_one_still_left() -> None
         w = hd.estimate_motion(e, f, SIGMA, PRIOR, options=alone, initial_heading=off)
         assert w.heading is not None
         assert angle(w.heading, H_TRUE) < 4 * w.heading_sigma_rad
+
+
+def _two_planes(step_u: float = 320.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tracks on a 10 px grid over a 640 x 480 image (f = 500 px) seeing a wall 3 m ahead
+    left of column ``step_u`` and one 6 m ahead right of it; exact translational flows for
+    T. Returns pixels (N, 2), bearings (N, 3), rates (N, 3)."""
+    u, v = np.meshgrid(np.arange(5.0, 640.0, 10.0), np.arange(5.0, 480.0, 10.0))
+    px = np.column_stack([u.ravel(), v.ravel()])
+    e = np.column_stack([(px - [320.0, 240.0]) / 500.0, np.ones(px.shape[0])])
+    e /= np.linalg.norm(e, axis=1, keepdims=True)
+    r = np.where(px[:, 0] < step_u, 3.0, 6.0) / e[:, 2]  # fronto-parallel walls
+    f = -(T - (e @ T)[:, None] * e) / r[:, None]
+    return px, e, f
+
+
+def test_depth_edge_weights_set_aside_tracks_across_a_depth_edge_only() -> None:
+    px, e, f = _two_planes()
+    w = hd.depth_edge_weights(px, e, f, 1e-4, H_TRUE, radius_px=12.0, log_scale=0.1)
+    # neighbours (10 px apart) across the edge differ by log 2 in range:
+    # 1 / (1 + (0.693 / 0.1)^4) = 4.3e-4
+    across = np.abs(px[:, 0] - 320.0) < 10.0
+    assert np.allclose(w[across], 1.0 / (1.0 + (np.log(2.0) / 0.1) ** 4), rtol=1e-6)
+    # on one wall the range changes by the bearing's tilt only (r = z / e_z): a fraction
+    # of a percent between neighbours, so the weights stay at 1 (focus of expansion
+    # included, at column 420, row 257: the score does not depend on the distance to it)
+    assert np.all(w[~across] > 0.999)
+    # without the heading, neighbours' flows near the focus of expansion differ as their
+    # distances to it do (one 10 px grid step at 15 px: log 25/15 = 0.51)
+    w_plain = hd.depth_edge_weights(px, e, f, 1e-4, None, radius_px=12.0, log_scale=0.1)
+    near_foe = np.linalg.norm(px - [420.0, 256.7], axis=1) < 30.0
+    assert np.all(w_plain[near_foe & ~across] < 0.5)
+    far_from_both = ~across & (np.linalg.norm(px - [420.0, 256.7], axis=1) > 250.0)
+    assert np.all(w_plain[far_from_both] > 0.99)
+
+
+def test_depth_edge_weights_ignore_flows_in_the_noise_and_check_inputs() -> None:
+    px, e, f = _two_planes()
+    # a noise level 100x the flows: every magnitude sits at its 3-sigma floor, no edge
+    w = hd.depth_edge_weights(px, e, f, 100.0 * np.abs(f).max(), None, 12.0, 0.1)
+    assert np.all(w == 1.0)
+    with pytest.raises(InvalidInputError, match="shape"):
+        hd.depth_edge_weights(px[:, :1], e, f, 1e-4, None, 12.0, 0.1)
+    with pytest.raises(InvalidInputError, match="radius_px"):
+        hd.depth_edge_weights(px, e, f, 1e-4, None, 0.0, 0.1)
