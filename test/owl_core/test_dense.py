@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
 import pytest
 
 from owl_core.camera import CameraModel
-from owl_core.dense import DenseOptions, DenseOwl, _Grid, _LocalFit, _minus_global_affine
+from owl_core.dense import (
+    DenseOptions,
+    DenseOwl,
+    _Grid,
+    _LocalFit,
+    _minus_global_affine,
+    _ttc,
+)
 from owl_core.errors import InvalidInputError
 from owl_core.geometry import so3_exp
 
@@ -117,7 +125,8 @@ def test_ttc_window_removes_the_order_statistic_bias() -> None:
     Z/v; its 20th smallest of ~1100 values sits about 2 sigma short. Averaging L over the
     window first brings the shortest time to contact back to within 10 %."""
     z_now = (4.0 - 2.0 * 4 * DT_NS * 1e-9) / 2.0
-    _, raw, _, _ = _run(speed=2.0, options=DenseOptions(width=160, height=120, ttc_window_px=1))
+    raw_options = DenseOptions(width=160, height=120, ttc_window_px=1, ttc_lower_sigmas=0.0)
+    _, raw, _, _ = _run(speed=2.0, options=raw_options)
     assert raw.ttc is not None
     values = raw.ttc.image[np.isfinite(raw.ttc.image)]
     assert np.median(values) == pytest.approx(z_now, rel=0.05)  # no bias in the middle
@@ -125,6 +134,39 @@ def test_ttc_window_removes_the_order_statistic_bias() -> None:
     _, avg, _, _ = _run(speed=2.0, options=DenseOptions(width=160, height=120))
     assert avg.ttc is not None
     assert avg.ttc.seconds == pytest.approx(z_now, rel=0.1)
+
+
+def test_ttc_read_below_the_average_removes_the_selection_bias() -> None:
+    """A looming field L = 0.5 1/s (2 s to contact everywhere) with independent normal
+    noise of known sigma (10 % of L) per pixel, no window averaging: the 20th largest of N
+    cone values lies Phi^-1(1 - 20/N) sigmas above L, so the 20th shortest 1/L reads short
+    by that much; reading each pixel at L - z sigma with z = Phi^-1(1 - 20/N) takes it
+    back (to the order statistic's own scatter, about 0.1 sigma for N of a few thousand)."""
+    from scipy.stats import norm
+
+    cam = _camera()
+    dense = DenseOwl(cam, DenseOptions(width=160, height=120))
+    grid = dense.grid
+    true_l, sigma = 0.5, 0.05
+    rng = np.random.default_rng(7)
+    looming = (true_l + sigma * rng.standard_normal(grid.e.shape[1:])).astype(np.float32)
+    var_l = np.full(looming.shape, sigma**2, dtype=np.float32)
+    heading = np.array([0.0, 0.0, 1.0])
+    options = DenseOptions(width=160, height=120, ttc_window_px=1, ttc_cone_deg=30.0)
+    plain = _ttc(grid, replace(options, ttc_lower_sigmas=0.0), looming, var_l, heading)
+    n = plain.confident_in_cone
+    assert n > 1000
+    z = float(norm.ppf(1.0 - options.ttc_min_pixels / n))
+    # the plain reading: short by z sigma in L, i.e. 1/(L + z sigma)
+    assert plain.seconds == pytest.approx(1.0 / (true_l + z * sigma), rel=0.02)
+    assert plain.seconds < 0.85 / true_l
+    lowered = _ttc(grid, replace(options, ttc_lower_sigmas=z), looming, var_l, heading)
+    assert lowered.seconds == pytest.approx(1.0 / true_l, rel=0.02)
+    # every window is read at its lower bound; the image stays NaN outside the cone
+    inside = np.isfinite(lowered.image)
+    assert np.allclose(lowered.image[inside], 1.0 / (looming[inside] - z * sigma), rtol=1e-5)
+    with pytest.raises(InvalidInputError):
+        DenseOptions(ttc_lower_sigmas=-1.0)
 
 
 def test_range_scales_with_speed() -> None:
