@@ -180,6 +180,10 @@ class EngineOptions:
             rotation); None: every track at full weight.
         edge_log_scale: the change of log range (= of log flow magnitude) between
             neighbours at which that weight is 1/2, dimensionless.
+        edge_spread_factor: where the frame's typical difference between neighbours is
+            larger than ``edge_log_scale / this`` (noisy flow), the scale follows it
+            (``spread_factor`` of :func:`~owl_core.heading.depth_edge_weights`; 0: never),
+            dimensionless.
         range_filter: filter each track's r/|t| over frames: the previous frame's scaled
             point, moved on by the elapsed time (minus the heading x dt, rescaled by the
             speed change, rotated with the gyro into this frame), predicts this frame's,
@@ -237,6 +241,7 @@ class EngineOptions:
     residual_memory_sigma: float = 0.5
     edge_radius_px: float | None = 12.0
     edge_log_scale: float = 0.1
+    edge_spread_factor: float = 1.4
     range_filter: bool = True
     range_process_rel: float = 0.05
     range_gate: float = 4.0
@@ -302,7 +307,13 @@ class EngineOptions:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise InvalidInputError(f"{name} must be positive and finite, got {value!r}")
-        for name in ("min_quality", "min_tor", "bias_random_walk", "range_process_rel"):
+        for name in (
+            "min_quality",
+            "min_tor",
+            "bias_random_walk",
+            "range_process_rel",
+            "edge_spread_factor",
+        ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise InvalidInputError(f"{name} must be >= 0 and finite, got {value!r}")
@@ -1217,6 +1228,7 @@ class OwlEngine:
                 opts.edge_radius_px,
                 opts.edge_log_scale,
                 min_sin=opts.heading.min_sin,
+                spread_factor=opts.edge_spread_factor,
             )
         hopts = opts.heading
         flt = self._heading_filter

@@ -535,6 +535,7 @@ def depth_edge_weights(
     log_scale: float,
     neighbours: int = 8,
     min_sin: float = 0.05,
+    spread_factor: float = 1.4,
 ) -> FloatArray:
     """Heading-fit weights that set aside tracks near a depth edge.
 
@@ -557,6 +558,14 @@ def depth_edge_weights(
     says otherwise). Without a heading ``|h x e|`` is taken as 1 (neighbours near the
     focus of expansion then differ as their distances to it do).
 
+    Where the flow is noisy the differences between neighbours on one surface exceed
+    ``log_scale`` too, and the weights become noise (on a handheld real recording 46 % of
+    the tracks fell below 1/2, and the heading moved 6 deg further from the two-view
+    estimates). So the scale is ``max(log_scale, spread_factor * spread)``, ``spread`` the
+    frame's typical neighbour difference (1.4826 times the median over all measured
+    pairs): 0.04 to 0.07 on the synthetic scenes, where the scale stays ``log_scale``,
+    0.14 on that recording.
+
     Args:
         pixels: (N, 2) pixel positions of the tracks, pixels.
         bearings: (N, 3) unit bearings e.
@@ -567,6 +576,8 @@ def depth_edge_weights(
         log_scale: the change of log range at which the weight is 1/2.
         neighbours: the nearest tracks compared, besides the track itself.
         min_sin: floor of ``|h x e|``.
+        spread_factor: the scale follows this many of the frame's neighbour spreads when
+            that is larger than ``log_scale`` (0: always ``log_scale``).
 
     Returns:
         (N,) float64 weights in (0, 1].
@@ -580,10 +591,13 @@ def depth_edge_weights(
             f"pixels must have shape (N, 2), bearings and rates (N, 3), got {px.shape}, "
             f"{e.shape} and {f.shape}"
         )
-    if not (radius_px > 0 and log_scale > 0 and neighbours >= 1 and min_sin > 0):
+    if not (
+        radius_px > 0 and log_scale > 0 and neighbours >= 1 and min_sin > 0 and spread_factor >= 0
+    ):
         raise InvalidInputError(
-            f"radius_px, log_scale and min_sin must be > 0 and neighbours >= 1, got "
-            f"{radius_px}, {log_scale}, {min_sin}, {neighbours}"
+            f"radius_px, log_scale and min_sin must be > 0, neighbours >= 1 and "
+            f"spread_factor >= 0, got {radius_px}, {log_scale}, {min_sin}, {neighbours}, "
+            f"{spread_factor}"
         )
     if n < 2:
         return np.ones(n)
@@ -597,11 +611,16 @@ def depth_edge_weights(
         log_q -= np.log(np.maximum(sin, 1e-300))
     k = min(neighbours + 1, n)
     dist, nb = cKDTree(px).query(px, k=k, distance_upper_bound=radius_px)
-    nb = np.where(np.isfinite(dist), nb, np.arange(n)[:, None])  # missing: the point itself
+    itself = np.arange(n)[:, None]
+    nb = np.where(np.isfinite(dist), nb, itself)  # missing: the point itself
     pair = measured[:, None] & measured[nb]
     diff = np.where(pair, np.abs(log_q[nb] - log_q[:, None]), 0.0)
+    scale = log_scale
+    others = pair & (nb != itself)
+    if spread_factor > 0 and others.any():
+        scale = max(log_scale, spread_factor * 1.4826 * float(np.median(diff[others])))
     score = np.nan_to_num(diff.max(axis=1), nan=0.0)
-    return np.asarray(1.0 / (1.0 + (score / log_scale) ** 4), dtype=np.float64)
+    return np.asarray(1.0 / (1.0 + (score / scale) ** 4), dtype=np.float64)
 
 
 def point_heading_disagreement(

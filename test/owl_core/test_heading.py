@@ -434,6 +434,32 @@ def test_depth_edge_weights_set_aside_tracks_across_a_depth_edge_only() -> None:
     assert np.all(w_plain[far_from_both] > 0.99)
 
 
+def test_depth_edge_weights_scale_follows_noisy_flows() -> None:
+    """Each flow magnitude off by a log-normal factor of sigma 0.05 to 0.2 (real flows are
+    noisier than their claimed sigma): with a fixed scale the share of one wall's tracks
+    below weight 1/2 grows with the noise (to nearly all of them at 0.2); with the scale
+    following the frame's neighbour spread it stays put (the same order statistic of
+    scale-free differences: 4 neighbours on the 10 px grid), and the edge stays flagged."""
+    px, e, f = _two_planes()
+    across = np.abs(px[:, 0] - 320.0) < 10.0
+    shares = []
+    for sigma in (0.05, 0.1, 0.2):
+        noisy = f * np.exp(np.random.default_rng(1).normal(0.0, sigma, len(f)))[:, None]
+        fixed = hd.depth_edge_weights(px, e, noisy, 1e-4, H_TRUE, 12.0, 0.1, spread_factor=0.0)
+        w = hd.depth_edge_weights(px, e, noisy, 1e-4, H_TRUE, 12.0, 0.1)
+        shares.append(((fixed[~across] < 0.5).mean(), (w[~across] < 0.5).mean()))
+        assert (w[across] < 0.5).mean() > 0.9
+    assert shares[-1][0] > 0.95
+    assert max(s[1] for s in shares) < 0.5
+    assert max(s[1] for s in shares) - min(s[1] for s in shares) < 0.05
+    # below the scale's floor (spread_factor x spread < 0.1) the two are the same weights
+    quiet = f * np.exp(np.random.default_rng(2).normal(0.0, 0.02, len(f)))[:, None]
+    assert np.array_equal(
+        hd.depth_edge_weights(px, e, quiet, 1e-4, H_TRUE, 12.0, 0.1),
+        hd.depth_edge_weights(px, e, quiet, 1e-4, H_TRUE, 12.0, 0.1, spread_factor=0.0),
+    )
+
+
 def test_depth_edge_weights_ignore_flows_in_the_noise_and_check_inputs() -> None:
     px, e, f = _two_planes()
     # a noise level 100x the flows: every magnitude sits at its 3-sigma floor, no edge
@@ -443,3 +469,5 @@ def test_depth_edge_weights_ignore_flows_in_the_noise_and_check_inputs() -> None
         hd.depth_edge_weights(px[:, :1], e, f, 1e-4, None, 12.0, 0.1)
     with pytest.raises(InvalidInputError, match="radius_px"):
         hd.depth_edge_weights(px, e, f, 1e-4, None, 0.0, 0.1)
+    with pytest.raises(InvalidInputError, match="spread_factor"):
+        hd.depth_edge_weights(px, e, f, 1e-4, None, 12.0, 0.1, spread_factor=-1.0)
