@@ -29,7 +29,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from owl_core.errors import InvalidInputError
-from owl_core.motion import cross
+from owl_core.motion import MAD_TO_SIGMA, cross
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -257,7 +257,7 @@ def _refine(
         res = raw * inv_scale
         k = 1.0
         if opts.adaptive_scale:
-            k = float(np.clip(1.4826 * np.median(np.abs(res)), *SCALE_RANGE))
+            k = float(np.clip(MAD_TO_SIGMA * np.median(np.abs(res)), *SCALE_RANGE))
         if it < opts.irls_iterations:
             w = 1.0 / (1.0 + (res / (k * opts.cauchy_sigma)) ** 2)
         else:
@@ -618,7 +618,7 @@ def depth_edge_weights(
     scale = log_scale
     others = pair & (nb != itself)
     if spread_factor > 0 and others.any():
-        scale = max(log_scale, spread_factor * 1.4826 * float(np.median(diff[others])))
+        scale = max(log_scale, spread_factor * MAD_TO_SIGMA * float(np.median(diff[others])))
     score = np.nan_to_num(diff.max(axis=1), nan=0.0)
     return np.asarray(1.0 / (1.0 + (score / scale) ** 4), dtype=np.float64)
 

@@ -32,6 +32,8 @@ BoolArray = npt.NDArray[np.bool_]
 
 #: |ToR| (1/s) below which RoT, range_over_speed, the scaled point and the heading are undefined.
 DEFAULT_MIN_TOR = 1e-9
+#: A normal distribution's sigma per median absolute deviation (robust spreads).
+MAD_TO_SIGMA = 1.4826
 
 
 def cross(a: npt.ArrayLike, b: npt.ArrayLike) -> FloatArray:
@@ -355,11 +357,11 @@ def _cauchy_weights(
     resid: FloatArray, mask: npt.NDArray[np.bool_], noise: float, robust_scale: float
 ) -> FloatArray:
     """IRLS weights (N, k) ``1/(1 + (res/(robust_scale * s))^2)``; s per feature = the
-    median absolute residual over its used neighbours x 1.4826, at least ``noise``."""
+    median absolute residual over its used neighbours x ``MAD_TO_SIGMA``, at least ``noise``."""
     ordered = np.sort(np.where(mask, resid, np.inf), axis=1)  # masked last
     mid = np.maximum(mask.sum(axis=1) - 1, 0) // 2
     med = np.take_along_axis(ordered, mid[:, None], axis=1)[:, 0]
-    scale = np.maximum(np.where(np.isfinite(med), med, noise) * 1.4826, noise)
+    scale = np.maximum(np.where(np.isfinite(med), med, noise) * MAD_TO_SIGMA, noise)
     u = resid / (robust_scale * scale[:, None])
     return np.asarray(mask / (1.0 + u * u), dtype=np.float64)
 

@@ -8,6 +8,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from scipy.stats import norm
 
 from owl_core.camera import CameraModel
 from owl_core.dense import (
@@ -142,8 +143,6 @@ def test_ttc_read_below_the_average_removes_the_selection_bias() -> None:
     cone values lies Phi^-1(1 - 20/N) sigmas above L, so the 20th shortest 1/L reads short
     by that much; reading each pixel at L - z sigma with z = Phi^-1(1 - 20/N) takes it
     back (to the order statistic's own scatter, about 0.1 sigma for N of a few thousand)."""
-    from scipy.stats import norm
-
     cam = _camera()
     dense = DenseOwl(cam, DenseOptions(width=160, height=120))
     grid = dense.grid
