@@ -55,6 +55,7 @@ from msg_adapters.stamps import header_to_ns
 from owl_ros import node_report
 from owl_ros.dense_outputs import DensePublishers
 from owl_ros.extrinsic_tf import TfExtrinsic, tf_available
+from owl_ros.heap import keep_freed_memory
 from owl_ros.params import PARAMS, ParameterError, build_options, descriptor, validate
 from owl_ros.pipeline import Output, Pipeline
 from owl_ros.roles import Role
@@ -562,6 +563,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except BrokenPipeError:  # e.g. owl_node --help | head
             pass
         return 0
+    heap_line = keep_freed_memory()
     stop = threading.Event()
     bad_file = node_report.check_params_file_args(args)
     if bad_file is not None:
@@ -581,6 +583,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{PROG}: error: {line}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
+    node.get_logger().debug(heap_line)
     executor = _executor()
     executor.add_node(node)
     try:

@@ -48,6 +48,7 @@ from msg_adapters.msgtypes import message_class
 from msg_adapters.stamps import header_to_ns
 from owl_core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from owl_ros.dense_outputs import DenseWriter
+from owl_ros.heap import keep_freed_memory
 from owl_ros.node import heading_marker
 from owl_ros.node_report import EXTRINSIC_HOWTO, unknown_parameters
 from owl_ros.params import (
@@ -635,6 +636,7 @@ def summary_notes(summary: Summary, opts: ProcessOptions) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``owl_process``; returns the exit status."""
     args = build_parser().parse_args(argv)
+    keep_freed_memory()
     try:
         opts = options_from_args(args)
     except ParameterError as err:

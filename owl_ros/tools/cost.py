@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from owl_core.types import ImageFrame
+from owl_ros.heap import keep_freed_memory
 from owl_ros.tools import bench
 from owl_ros.tools.threads import one_thread
 
@@ -134,6 +135,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.runs < 1:
         p.error(f"--runs must be >= 1, got {args.runs}")
     one_thread()
+    keep_freed_memory()
     cache = Path(args.cache_dir)
     runs_f, runs_s = [], []
     for _ in range(args.runs):

@@ -42,6 +42,7 @@ from owl_core.dense import DenseOptions, DenseOwl, DenseResult
 from owl_core.engine import EngineOptions, OwlEngine
 from owl_core.geometry import matrix_to_quat_xyzw
 from owl_core.types import GyroSamples, ImageFrame
+from owl_ros.heap import keep_freed_memory
 from owl_ros.tools.bench import load_frames, sim_engine
 from owl_ros.tools.threads import one_thread
 
@@ -434,6 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     one_thread()
+    keep_freed_memory()
     cases = [c for c in args.cases.split(",") if c]
     for c in cases:
         if c not in scenarios.names():
