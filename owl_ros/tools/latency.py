@@ -36,7 +36,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -115,6 +115,9 @@ class Measurement:
             frame interval it says whether the engine or the rest of the node is short.
         publish_late_ms_p95: p95 of how late this tool published an image after its
             stamp (its own loop falling behind; included in the latency), ms.
+        images_per_frame: of each ``image_topics`` topic (e.g. a dense output), the
+            messages received for the window's images per image sent (1.0: one for
+            every frame); empty without ``image_topics``.
     """
 
     input_rate_hz: float
@@ -136,6 +139,7 @@ class Measurement:
     node_processed: int = -1
     node_engine_ms: float = float("nan")
     publish_late_ms_p95: float = float("nan")
+    images_per_frame: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -258,8 +262,14 @@ def measure(
             snapshots.append((time.time_ns(), found))
 
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+    image_stamps: dict[str, list[int]] = {topic: [] for topic in image_topics}
     for topic in image_topics:  # e.g. a dense output, which is built only while subscribed
-        node.create_subscription(Image, topic, lambda _msg: None, QoSProfile(depth=10))
+        node.create_subscription(
+            Image,
+            topic,
+            lambda msg, got=image_stamps[topic]: got.append(header_to_ns(msg.header)),
+            QoSProfile(depth=10),
+        )
     pub_img = node.create_publisher(Image, "/lat/image", qos_profile_sensor_data)
     pub_info = node.create_publisher(CameraInfo, "/lat/camera_info", qos_profile_sensor_data)
     pub_imu = node.create_publisher(Imu, "/lat/imu", QoSProfile(depth=100))
@@ -348,6 +358,9 @@ def measure(
         points_per_cloud=float(np.mean(pts)) if pts else 0.0,
         **_node_counts(snapshots, window, published),
         publish_late_ms_p95=float(np.percentile(late_ms, 95)) if late_ms else float("nan"),
+        images_per_frame={
+            t: len(sent_set.intersection(v)) / max(len(sent), 1) for t, v in image_stamps.items()
+        },
     )
 
 
@@ -389,7 +402,16 @@ def meets(case: LatencyCase, m: Measurement) -> dict[str, bool]:
 def median_measurement(runs: Sequence[Measurement]) -> dict[str, float]:
     """Per-field medians of several runs of the same input (numeric fields)."""
     rows = [asdict(m) for m in runs]
-    return {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
+    out = {
+        k: float(np.median([r[k] for r in rows]))
+        for k, v in rows[0].items()
+        if k != "images_per_frame"
+    }
+    for topic in rows[0]["images_per_frame"]:
+        out[f"images_per_frame {topic}"] = float(
+            np.median([r["images_per_frame"][topic] for r in rows])
+        )
+    return out
 
 
 def _run_case(name: str, args: argparse.Namespace, node_args: list[str]) -> None:

@@ -55,6 +55,8 @@ def test_median_over_runs() -> None:
     med = median_measurement(runs)
     assert med["latency_ms_p95"] == 40.0
     assert med["kept_up"] == 0.95
+    dense = [_m(images_per_frame={"/owl/looming": f}) for f in (0.2, 0.5, 0.4)]
+    assert median_measurement(dense)["images_per_frame /owl/looming"] == 0.4
 
 
 def test_runs_must_be_positive(capsys: pytest.CaptureFixture[str]) -> None:
