@@ -152,20 +152,43 @@ def test_ttc_read_below_the_average_removes_the_selection_bias() -> None:
     var_l = np.full(looming.shape, sigma**2, dtype=np.float32)
     heading = np.array([0.0, 0.0, 1.0])
     options = DenseOptions(width=160, height=120, ttc_window_px=1, ttc_cone_deg=30.0)
-    plain = _ttc(grid, replace(options, ttc_lower_sigmas=0.0), looming, var_l, heading)
+    textured = np.ones(looming.shape, dtype=bool)
+    plain = _ttc(grid, replace(options, ttc_lower_sigmas=0.0), looming, var_l, heading, textured)
     n = plain.confident_in_cone
     assert n > 1000
     z = float(norm.ppf(1.0 - options.ttc_min_pixels / n))
     # the plain reading: short by z sigma in L, i.e. 1/(L + z sigma)
     assert plain.seconds == pytest.approx(1.0 / (true_l + z * sigma), rel=0.02)
     assert plain.seconds < 0.85 / true_l
-    lowered = _ttc(grid, replace(options, ttc_lower_sigmas=z), looming, var_l, heading)
+    lowered = _ttc(grid, replace(options, ttc_lower_sigmas=z), looming, var_l, heading, textured)
     assert lowered.seconds == pytest.approx(1.0 / true_l, rel=0.02)
     # every window is read at its lower bound; the image stays NaN outside the cone
     inside = np.isfinite(lowered.image)
     assert np.allclose(lowered.image[inside], 1.0 / (looming[inside] - z * sigma), rtol=1e-5)
     with pytest.raises(InvalidInputError):
         DenseOptions(ttc_lower_sigmas=-1.0)
+
+
+def test_ttc_ignores_what_dense_flow_filled_into_a_textureless_region() -> None:
+    """A textured surface 5 s away fills the path cone but for a textureless band where the
+    flow (filled in from an edge) reads L = 0.5 1/s: its windows are as precise as any by
+    the variance model, and taken as measured they give 2 s. Read over textured pixels
+    only the time to contact is the surface's, and the band stays NaN in the image."""
+    cam = _camera()
+    options = DenseOptions(width=160, height=120, ttc_cone_deg=30.0)
+    grid = DenseOwl(cam, options).grid
+    looming = np.full(grid.e.shape[1:], 0.2, dtype=np.float32)  # 5 s
+    band = np.zeros(looming.shape, dtype=bool)
+    band[30:70, 50:110] = True  # in the cone, 40 x 60 working pixels (25 px windows)
+    looming[band] = 0.5
+    var_l = np.full(looming.shape, 1e-6, dtype=np.float32)
+    heading = np.array([0.0, 0.0, 1.0])
+    taken = _ttc(grid, options, looming, var_l, heading, np.ones(looming.shape, dtype=bool))
+    assert taken.seconds == pytest.approx(2.0, rel=0.01)  # the filled-in flow, as measured
+    ttc = _ttc(grid, options, looming, var_l, heading, ~band)
+    assert ttc.seconds == pytest.approx(5.0, rel=0.01)
+    assert np.all(np.isnan(ttc.image[band]))
+    assert np.isfinite(ttc.image[~band & np.isfinite(taken.image)]).all()
 
 
 def test_range_scales_with_speed() -> None:
