@@ -199,6 +199,14 @@ def _processing_message(s: StatusInputs) -> tuple[Level, str]:
         message = f"no points: {s.last_empty_reason or 'no frames processed'}"
     if dropped:
         message += f"; {dropped} frames dropped (queue full, newest wins)"
+        engine_s = _mean(s.process_s)
+        interval_s = 1.0 / s.rate(c.images) if c.images else math.nan
+        if engine_s > 0.9 * interval_s:  # not a burst: the engine is slower than the camera
+            message += (
+                f": the engine takes {1e3 * engine_s:.0f} ms a frame, images arrive every "
+                f"{1e3 * interval_s:.0f} ms (fewer max_features, or "
+                "tracker_lk_deformation_correction false, keep up)"
+            )
     if c.time_jumps:
         message += f"; time jump: {s.last_jump}"
     return level, message

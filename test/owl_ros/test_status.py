@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -39,6 +40,22 @@ def test_healthy_window() -> None:
     assert inp.value_map()["image_rate_hz"] == "30"
     assert gyro.level == Level.OK and gyro.message == "bias [0.001, 0, -0.002] rad/s"
     assert gyro.value_map()["bias_z_rad_s"] == "-0.002"
+
+
+def test_an_engine_slower_than_the_camera_is_named_with_what_helps() -> None:
+    # 30 images/s, 20 processed, the engine 45 ms a frame: the drops are not a burst
+    counts = Counters(images=60, imu=800, camera_info=60, processed=40, frames_with_points=40)
+    slow = _inputs(counts=replace(counts, dropped_queue_full=20), process_s=[0.045, 0.045])
+    proc = build_status(slow)[1]
+    assert proc.level == Level.WARN
+    assert proc.message.endswith(
+        "20 frames dropped (queue full, newest wins): the engine takes 45 ms a frame, images "
+        "arrive every 33 ms (fewer max_features, or tracker_lk_deformation_correction false, "
+        "keep up)"
+    )
+    # a burst: the same drops with an engine well inside the interval say only the drops
+    burst = _inputs(counts=replace(counts, dropped_queue_full=20), process_s=[0.01, 0.012])
+    assert build_status(burst)[1].message.endswith("20 frames dropped (queue full, newest wins)")
 
 
 def test_problems_raise_the_level_and_are_named() -> None:
