@@ -156,6 +156,7 @@ class DenseStage:
         self._work: CameraModel | None = None
         self._last = _Last()
         self._lock = threading.Lock()
+        self._next_due_ns: int | None = None
 
     @property
     def last(self) -> DenseResult | None:
@@ -171,6 +172,25 @@ class DenseStage:
         """Forget the kept images (call when nobody listens for a while)."""
         if self._dense is not None:
             self._dense.reset()
+        self._next_due_ns = None
+
+    def due(self, stamp_ns: int) -> bool:
+        """Whether the frame stamped ``stamp_ns`` is to be measured under
+        ``dense_max_rate_hz`` (always at 0). Decided by the stamps, so ``owl_process`` and
+        the node measure the same frames: the due time advances by one period per measured
+        frame (a 30 Hz camera under 20 Hz gives gaps of 2 and 1 frames, 20 frames/s), a
+        frame up to a tenth of a period early counts as on time (stamp jitter), and a gap
+        longer than a period starts again from the frame after it."""
+        rate = self.options.dense_max_rate_hz
+        if not rate > 0:
+            return True
+        period = round(1e9 / rate)
+        nxt = self._next_due_ns
+        if nxt is not None and stamp_ns < nxt - period // 10:
+            return False
+        base = nxt if nxt is not None and 0 <= stamp_ns - nxt < period else stamp_ns
+        self._next_due_ns = base + period
+        return True
 
     def record_error(self, text: str) -> None:
         """Say in ``owl: dense`` why a frame gave no dense output."""
@@ -236,13 +256,6 @@ class DenseStage:
                 if self._warning(ttc.seconds, ttc.pixel) is not None:
                     self._last.warned += 1
         return out
-
-    def run(
-        self, engine: OwlEngine | None, camera: CameraModel | None, image: Any, result: Any
-    ) -> DenseResult | None:
-        """One frame in this thread: :meth:`begin` then :meth:`finish`."""
-        job = self.begin(engine, camera, image, result)
-        return None if job is None else self.finish(job)
 
     def _warning(self, seconds: float, pixel: Any) -> str | None:
         """The WARN line when a time to contact is below ``ttc_warn_s``."""
@@ -395,7 +408,7 @@ class DensePublishers:
         self._idle = False
         job = self.stage.begin(engine, camera, out.image, out.result)
         work = self.stage.camera_info_model
-        if job is None or work is None:
+        if job is None or work is None or not self.stage.due(job.pair.stamp_ns):
             return
         with self._cond:
             if self._pending is not None:
@@ -470,7 +483,10 @@ class DenseWriter:
         """Run the dense stage on one pipeline Output and write all its messages."""
         from msg_adapters.stamps import header_to_ns
 
-        result = self.stage.run(engine, camera, out.image, out.result)
+        job = self.stage.begin(engine, camera, out.image, out.result)
+        if job is None or not self.stage.due(job.pair.stamp_ns):
+            return
+        result = self.stage.finish(job)
         work = self.stage.camera_info_model
         if result is None or work is None:
             return

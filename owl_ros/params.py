@@ -558,6 +558,16 @@ PARAMS: tuple[Param, ...] = (
         high=64,
     ),
     Param(
+        "dense_max_rate_hz",
+        "double",
+        0.0,
+        "the dense stage measures at most this many frames per second (its images are kept "
+        "every frame, so the flow baseline stays dense_baseline_frames); leaves CPU to the "
+        "sparse engine on small computers, Hz (0 = every frame it can)",
+        low=0.0,
+        high=1000.0,
+    ),
+    Param(
         "ttc_cone_deg",
         "double",
         10.0,
@@ -604,6 +614,7 @@ class NodeOptions:
         dense_baseline_frames: flow baseline, frames.
         dense_min_confidence: published pixels' least confidence, 0..1.
         dense_cloud_stride: owl/dense_points stride, working px.
+        dense_max_rate_hz: most frames per second the dense stage measures, Hz (0: all).
         ttc_cone_deg: path-cone half-angle, degrees.
         ttc_warn_s: WARN below this time to contact, s (0 = never).
     """
@@ -628,6 +639,7 @@ class NodeOptions:
     dense_baseline_frames: int = 3
     dense_min_confidence: float = 0.5
     dense_cloud_stride: int = 4
+    dense_max_rate_hz: float = 0.0
     ttc_cone_deg: float = 10.0
     ttc_warn_s: float = 1.0
     rectified: bool = False

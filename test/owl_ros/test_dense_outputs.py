@@ -156,3 +156,45 @@ def test_dense_cloud_holds_confident_pixels_at_the_stride(outputs: tuple[Any, An
         xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
         np.testing.assert_allclose(np.linalg.norm(xyz, axis=1), pts["range_over_speed"], rtol=1e-4)
         assert np.all(pts["confidence"] >= build_options({}).dense_min_confidence)
+
+
+def test_max_rate_measures_every_third_frame_of_30_hz_and_the_same(
+    bag: Path, outputs: tuple[Any, Any], tmp_path: Path
+) -> None:
+    """dense_max_rate_hz 10 on a 30 Hz bag: the dense stage measures every third frame
+    (its images are kept every frame, so each measured frame's baseline is the same as
+    without the cap) and writes for them exactly the messages of the uncapped run."""
+    on, _ = outputs
+    node = build_options(
+        {"dense": True, "dense_width": DW, "dense_height": DH, "ttc_warn_s": 100.0}
+    )
+    process_bag(
+        bag, tmp_path / "capped", ProcessOptions(node=replace(node, dense_max_rate_hz=10.0))
+    )
+    capped = read(tmp_path / "capped")
+    full = {t: d for t, d, _ in on["/owl/looming"]}
+    stamps = [t for t, _, _ in capped["/owl/looming"]]
+    assert len(stamps) == math.ceil(len(full) / 3)
+    assert np.allclose(np.diff(stamps) * 1e-9, 0.1, atol=0.002)
+    assert [d for _, d, _ in capped["/owl/looming"]] == [full[t] for t in stamps]
+    for topic in ("/owl/points", "/owl/heading"):  # the sparse outputs do not change
+        assert [d for _, d, _ in capped[topic]] == [d for _, d, _ in on[topic]]
+
+
+@pytest.mark.parametrize(
+    ("camera_hz", "cap_hz", "jitter_ms", "measured"),
+    [(30.0, 0.0, 0.0, 30), (30.0, 10.0, 0.0, 10), (30.0, 20.0, 0.0, 20), (30.0, 10.0, 2.0, 10)],
+)
+def test_max_rate_follows_the_stamps(
+    camera_hz: float, cap_hz: float, jitter_ms: float, measured: int
+) -> None:
+    from owl_ros.dense_outputs import DenseStage
+
+    stage = DenseStage(build_options({"dense": True, "dense_max_rate_hz": cap_hz}))
+    rng = np.random.default_rng(3)
+    stamps = np.arange(30) * 1e9 / camera_hz + rng.uniform(-1, 1, 30) * jitter_ms * 1e6
+    assert sum(stage.due(int(t)) for t in stamps) == measured  # one second of frames
+    # a gap in the images (2 s without frames) starts the count again at the next frame
+    later = int(stamps[-1] + 2e9)
+    assert stage.due(later)
+    assert stage.due(later + round(1e9 / camera_hz)) == (cap_hz == 0)  # the next: too soon
