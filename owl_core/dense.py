@@ -14,7 +14,9 @@ chain of stages, each a function returning a small record:
    position (bilinear) and rotated into the current camera frame with the gyro rotation
    over the frame interval (bias removed by the caller). ``f = (e_now - R e_prev) / dt``,
    made tangent at the mid bearing ``e_mid``, is the derotated bearing rate there, and
-   ``omega = f x e_mid`` (owl-math.md), so ``|omega| = |f|``.
+   ``omega = f x e_mid`` (owl-math.md), so ``|omega| = |f|``. With a rolling shutter
+   (:class:`Readout`) each of the two bearings is rotated from its own row's time into the
+   camera frame at the current stamp, and ``dt`` is the time between the two rows.
 3. **looming**, two routes (owl-math.md), fused by inverse variance:
 
    - local rule (:func:`_local_rule`): a weighted affine fit of ``f`` (3 components)
@@ -80,6 +82,7 @@ __all__ = [
     "DenseOwl",
     "DenseResult",
     "ImagePair",
+    "Readout",
     "TimeToContact",
     "dense_owl",
     "time_to_contact",
@@ -359,6 +362,8 @@ class _Grid:
         xs, ys: (h, w) float32 column and row index of each pixel.
         xc, yc: (h, w) float32 the same from the grid's centre.
         full_px: (h, w, 2) float64 the working pixel centres in input-image pixels.
+        row_fraction: (h, w) float32 each centre's input-image row over the input height
+            (a rolling shutter sees it that fraction of the readout after the stamp).
     """
 
     def __init__(self, camera: CameraModel, width: int, height: int) -> None:
@@ -368,6 +373,7 @@ class _Grid:
         v = (np.arange(height) + 0.5) * sy - 0.5
         uu, vv = np.meshgrid(u, v)
         self.full_px: F64 = np.stack([uu, vv], axis=-1)
+        self.row_fraction: F32 = (vv / camera.height).astype(np.float32)
         e = camera.pixel_to_bearing(self.full_px)  # (h, w, 3) float64, NaN outside
         # derivative of the bearing per working pixel (one-sided at the borders)
         e_u = np.gradient(e, axis=1)
@@ -572,28 +578,66 @@ class _Field:
 
 
 def _derotate(
-    grid: _Grid, flow: _Flow, rotation: F64, dt_s: float, flow_noise_px: float
+    grid: _Grid,
+    flow: _Flow,
+    rotation: F64,
+    dt_s: float,
+    flow_noise_px: float,
+    readout: Readout | None = None,
 ) -> _Field:
     """Earlier bearings looked up where the flow points, rotated into the current frame;
-    the secant rate made tangent at the mid bearing (see the module docstring)."""
+    the secant rate made tangent at the mid bearing (see the module docstring). With a
+    rolling shutter (``readout``) both bearings are rotated from their own rows' times
+    into the camera frame at the current stamp, and each pixel's interval is the stamps'
+    plus the readout times of its two rows' difference."""
     looked = cv2.remap(
         grid.lookup, flow.map_x, flow.map_y, cv2.INTER_LINEAR, None, cv2.BORDER_CONSTANT, 0.0
     )
     h, w = grid.height, grid.width
-    rot = np.asarray(rotation, dtype=np.float32)
-    e_prev = (rot @ looked.reshape(-1, 3).T).reshape(3, h, w)  # planes, current frame
+    inv_dt: F32 | np.float32
+    if readout is None:
+        rot = np.asarray(rotation, dtype=np.float32)
+        e_prev = (rot @ looked.reshape(-1, 3).T).reshape(3, h, w)  # planes, current frame
+        e_cur = grid.e
+        inv_dt = np.float32(1.0 / dt_s)
+    else:
+        row_prev: F32 = np.asarray(
+            cv2.remap(
+                grid.row_fraction, flow.map_x, flow.map_y, cv2.INTER_LINEAR, None,
+                cv2.BORDER_REPLICATE,
+            ),
+            dtype=np.float32,
+        )  # fmt: skip
+        planes: F32 = np.asarray(looked, dtype=np.float32).reshape(-1, 3).T.reshape(3, h, w)
+        e_prev = _rotate_from_rows(readout.prev, row_prev, planes)
+        e_cur = _rotate_from_rows(readout.cur, grid.row_fraction, grid.e)
+        gap = np.float32(dt_s) + (grid.row_fraction - row_prev) * np.float32(readout.readout_s)
+        inv_dt = (1.0 / np.maximum(gap, np.float32(1e-6))).astype(np.float32)
     # a bilinear lookup of unit bearings is shorter than 1 by < 1e-5; one touching the
     # outside (0) or an invalid bearing by far more
     valid = (_dot(e_prev, e_prev) > 0.999) & grid.valid
-    e_mid = grid.e + e_prev
+    e_mid = e_cur + e_prev
     e_mid *= 1.0 / np.sqrt(_dot(e_mid, e_mid) + np.float32(1e-30))
-    inv_dt = np.float32(1.0 / dt_s)
-    f = grid.e - e_prev
+    f = e_cur - e_prev
     f -= _dot(f, e_mid) * e_mid
     f *= inv_dt
     f[:, ~valid] = 0.0
-    sigma_f = grid.pix_angle * np.float32(flow_noise_px * inv_dt)
+    sigma_f = grid.pix_angle * (np.float32(flow_noise_px) * inv_dt)
     return _Field(e_mid, f, _dot(f, f), valid, sigma_f)
+
+
+def _rotate_from_rows(table: F64, fraction: F32, planes: F32) -> F32:
+    """Bearings ``planes`` (3, h, w) seen at row fractions ``fraction`` (h, w) rotated by
+    the row-time rotations ``table`` (M + 1, 3, 3), interpolated linearly between its rows:
+    (3, h, w) float32."""
+    m = table.shape[0] - 1
+    tab = np.asarray(table, dtype=np.float32)
+    x = np.clip(fraction, 0.0, 1.0) * np.float32(m)
+    j = np.minimum(x.astype(np.intp), m - 1)
+    a = (x - j)[..., None, None]
+    rot = tab[j] * (1.0 - a) + tab[j + 1] * a  # (h, w, 3, 3)
+    out: F32 = np.einsum("hwij,jhw->ihw", rot, planes, optimize=False)
+    return out
 
 
 @dataclass(frozen=True)
@@ -942,6 +986,7 @@ def dense_owl(
     heading_sigma_rad: float,
     stamp_ns: int,
     speed_rate: float = 0.0,
+    readout: Readout | None = None,
 ) -> DenseResult:
     """One frame of the dense stage on working images: the chain of stages of the module
     docstring.
@@ -966,7 +1011,7 @@ def dense_owl(
     clock = _Clock()
     flow = _flow(grid, setup.dis, prev, cur)
     clock.lap("flow")
-    field = _derotate(grid, flow, rotation, dt_s, o.flow_noise_px)
+    field = _derotate(grid, flow, rotation, dt_s, o.flow_noise_px, readout)
     tex = _texture(cur)
     textured = tex >= o.min_texture
     clock.lap("derotate")
@@ -1075,6 +1120,7 @@ class DenseOwl:
         heading: npt.ArrayLike | None,
         heading_sigma_rad: float = 0.0,
         speed_rate: float = 0.0,
+        readout: Readout | None = None,
     ) -> DenseResult | None:
         """Dense OWL between the image of ``previous_stamp_ns`` and this one; keeps this one.
 
@@ -1092,6 +1138,9 @@ class DenseOwl:
             speed_rate: ``d ln|t|/dt`` at this stamp from the sparse engine
                 (:attr:`~owl_core.types.FrameResult.speed_rate`), 1/s; 0 for a constant
                 speed (non-finite values are taken as 0).
+            readout: a rolling shutter's row rotations for this pair (:class:`Readout`);
+                then each pixel is derotated from its own row's time and its flow divided
+                by the time between its two rows, and ``rotation`` is not used.
 
         Returns:
             :class:`DenseResult`, or None for the first frame and after a stamp that did
@@ -1103,7 +1152,7 @@ class DenseOwl:
         pair = self.take(image, stamp_ns)
         if pair is None:
             return None
-        return self.measure(pair, rotation, heading, heading_sigma_rad, speed_rate)
+        return self.measure(pair, rotation, heading, heading_sigma_rad, speed_rate, readout)
 
     def take(self, image: npt.NDArray[np.uint8], stamp_ns: int) -> ImagePair | None:
         """Keep this image (resized to the working grid); the pair to measure, or None for
@@ -1142,6 +1191,7 @@ class DenseOwl:
         heading: npt.ArrayLike | None,
         heading_sigma_rad: float = 0.0,
         speed_rate: float = 0.0,
+        readout: Readout | None = None,
     ) -> DenseResult:
         """Dense OWL of an image pair from :meth:`take` (see :meth:`process`).
 
@@ -1164,11 +1214,45 @@ class DenseOwl:
         dt = (pair.stamp_ns - pair.prev_stamp_ns) * 1e-9
         rate = float(speed_rate) if math.isfinite(speed_rate) else 0.0
         result = dense_owl(
-            self._setup, pair.prev, pair.cur, dt, rot, hv, sigma, pair.stamp_ns, rate
+            self._setup, pair.prev, pair.cur, dt, rot, hv, sigma, pair.stamp_ns, rate, readout
         )
         result.timings["resize"] = pair.resize_s
         result.timings["total"] = time.perf_counter() - t_start + pair.resize_s
         return result
+
+
+@dataclass(frozen=True)
+class Readout:
+    """A rolling shutter's rows of an image pair, each seen at its own time.
+
+    Input-image row ``v`` of an image is seen at its stamp plus ``(v / H) readout_s`` (the
+    convention of :mod:`owl_core.rolling_shutter`). The tables hold the gyro rotations
+    from ``M + 1`` evenly spaced row times of each image into the camera frame at the
+    current stamp (:func:`owl_core.rolling_shutter.readout_rotations` of the two stamps
+    gives them); between table rows the rotation is interpolated linearly (M = 8 over a
+    30 ms readout at 2 rad/s: steps of 7.5 mrad, chords within 7 microradians).
+
+    Attributes:
+        readout_s: readout time, s (> 0).
+        prev, cur: (M + 1, 3, 3) rotations taking a bearing seen at row fraction ``j / M``
+            of the previous / the current image into the camera frame at the current stamp.
+    """
+
+    readout_s: float
+    prev: F64
+    cur: F64
+
+    def __post_init__(self) -> None:
+        ok = math.isfinite(self.readout_s) and 0.0 < self.readout_s < 1.0
+        shapes = [np.shape(t) for t in (self.prev, self.cur)]
+        good = all(len(sh) == 3 and sh[0] >= 2 and sh[1:] == (3, 3) for sh in shapes)
+        if not (ok and good and shapes[0] == shapes[1]):
+            raise InvalidInputError(
+                f"readout must have readout_s in (0, 1) s and two (M + 1, 3, 3) tables, got "
+                f"{self.readout_s!r} and {shapes}"
+            )
+        if not (np.all(np.isfinite(self.prev)) and np.all(np.isfinite(self.cur))):
+            raise InvalidInputError("readout rotation tables must be finite")
 
 
 @dataclass(frozen=True)

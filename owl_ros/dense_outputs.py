@@ -41,9 +41,10 @@ from msg_adapters.diagnostics import Level, StatusRecord
 from msg_adapters.image import array_to_image
 from msg_adapters.pointcloud import array_to_cloud
 from owl_core.camera import CameraModel
-from owl_core.dense import DenseOptions, DenseOwl, DenseResult, ImagePair
+from owl_core.dense import DenseOptions, DenseOwl, DenseResult, ImagePair, Readout
 from owl_core.engine import OwlEngine
 from owl_core.errors import OwlError
+from owl_core.rolling_shutter import readout_rotations
 from owl_ros.params import NodeOptions
 
 __all__ = [
@@ -129,6 +130,8 @@ class DenseJob:
         heading: (3,) the engine's heading at the second stamp, or None.
         heading_sigma_rad: its 1-sigma, rad.
         speed_rate: the engine's ``d ln|t|/dt`` at the second stamp, 1/s.
+        readout: with a rolling shutter (the engine's ``rolling_shutter_readout_s``) the
+            gyro rotations of both images' row times, or None.
     """
 
     dense: DenseOwl
@@ -137,6 +140,7 @@ class DenseJob:
     heading: Any
     heading_sigma_rad: float
     speed_rate: float
+    readout: Readout | None = None
 
 
 class DenseStage:
@@ -224,14 +228,27 @@ class DenseStage:
         if pair is None:
             return None
         rotation = None
+        readout = None
+        readout_ns = engine.readout_ns
         if engine.gyro.covers(pair.prev_stamp_ns, pair.stamp_ns):
             bias = engine.gyro_bias
             rotation = engine.gyro.relative_rotation(pair.prev_stamp_ns, pair.stamp_ns, bias)
+            end = pair.stamp_ns + readout_ns  # each row from its own time, when covered
+            if readout_ns > 0 and engine.gyro.covers(pair.prev_stamp_ns, end):
+                stamps = [pair.prev_stamp_ns, pair.stamp_ns]
+                rows = readout_rotations(engine.gyro, stamps, pair.stamp_ns, readout_ns, bias)
+                readout = Readout(readout_ns * 1e-9, rows.rotations[0], rows.rotations[1])
         else:
             with self._lock:
                 self._last.gyro_missing += 1
         return DenseJob(
-            dense, pair, rotation, result.heading, result.heading_sigma_rad, result.speed_rate
+            dense,
+            pair,
+            rotation,
+            result.heading,
+            result.heading_sigma_rad,
+            result.speed_rate,
+            readout,
         )
 
     def finish(self, job: DenseJob) -> DenseResult | None:
@@ -239,7 +256,12 @@ class DenseStage:
         (said in the status)."""
         try:
             out = job.dense.measure(
-                job.pair, job.rotation, job.heading, job.heading_sigma_rad, job.speed_rate
+                job.pair,
+                job.rotation,
+                job.heading,
+                job.heading_sigma_rad,
+                job.speed_rate,
+                job.readout,
             )
         except OwlError as err:
             with self._lock:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -14,6 +15,7 @@ from owl_core.camera import CameraModel
 from owl_core.dense import (
     DenseOptions,
     DenseOwl,
+    Readout,
     _Grid,
     _LocalFit,
     _minus_global_affine,
@@ -322,3 +324,76 @@ def test_first_frame_and_a_stamp_going_back_give_none() -> None:
 def test_bad_options_name_the_value(kwargs: dict[str, object], text: str) -> None:
     with pytest.raises(InvalidInputError, match=text):
         DenseOptions(**kwargs)  # type: ignore[arg-type]
+
+
+def _render_rolling(
+    cam: CameraModel, tex: np.ndarray, pose: Any, t0: float, readout_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_render` with a rolling shutter: input row v seen at ``t0 + (v / H) T`` from
+    ``pose(t) = (R_wc, c_w)``; the range is from the camera centre at ``t0``, m."""
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    e = cam.pixel_to_bearing(np.stack([u, v], axis=-1))
+    poses = [pose(t0 + row / H * readout_s) for row in range(H)]
+    r_rows = np.stack([p[0] for p in poses])
+    c_rows = np.stack([p[1] for p in poses])
+    d = np.einsum("hij,hwj->hwi", r_rows, e)
+    s = (4.0 - c_rows[:, None, 2]) / d[..., 2]
+    x = c_rows[:, None, :] + s[..., None] * d
+    mx = (x[..., 0] / 0.01 + tex.shape[1] / 2).astype(np.float32)
+    my = (x[..., 1] / 0.01 + tex.shape[0] / 2).astype(np.float32)
+    img = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    rng = np.linalg.norm(x - pose(t0)[1], axis=-1)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), rng
+
+
+def test_rolling_shutter_rows_are_derotated_from_their_own_times() -> None:
+    """A rolling shutter (30 ms readout) on a camera pitching at 1 rad/s while it moves at
+    2 m/s toward a plane 4 m away: the rows of the two images of a 3-frame baseline are
+    seen up to 3 ms further apart than their stamps (the rotation moves content 23 px
+    vertically), and the rotation between them differs from the stamps' by up to 3 mrad
+    against a translational flow of about 15 mrad. Derotated with the stamps' rotation the
+    median r/|t| error is 6.5 %; with each row's own rotation and interval (:class:`Readout`,
+    gyro tables of 9 row times) it is that of a global shutter (2.8 % against 3.6 %)."""
+    cam = _camera()
+    tex = _texture()
+    readout_s, m = 0.03, 8
+    velocity = np.array([0.0, 0.0, 2.0])
+
+    def pose(t: float) -> tuple[np.ndarray, np.ndarray]:
+        return so3_exp(np.array([1.0 * t, 0.0, 0.0])), velocity * t
+
+    def run(with_readout: bool) -> tuple[float, float]:
+        dense = DenseOwl(cam, DenseOptions(width=160, height=120))
+        res, rng = None, None
+        for k in range(5):
+            t = k * DT_NS * 1e-9
+            img, rng = _render_rolling(cam, tex, pose, t, readout_s)
+            prev = dense.previous_stamp_ns
+            r_now = pose(t)[0]
+            rot, readout = None, None
+            if prev is not None:
+                tp = (prev - 1_000_000_000) * 1e-9
+                rot = r_now.T @ pose(tp)[0]
+                if with_readout:
+                    rows = [[r_now.T @ pose(s + j / m * readout_s)[0] for j in range(m + 1)]
+                            for s in (tp, t)]  # fmt: skip
+                    readout = Readout(readout_s, np.array(rows[0]), np.array(rows[1]))
+            h = r_now.T @ velocity
+            res = dense.process(
+                img, 1_000_000_000 + k * DT_NS, rot, h / 2.0, 0.0, 0.0, readout=readout
+            )
+        assert res is not None and rng is not None
+        truth = _truth_ros(dense, rng, 2.0)
+        conf = res.confident
+        assert res.confident_fraction > 0.4
+        rel = np.abs(res.range_over_speed[conf] - truth[conf]) / truth[conf]
+        return float(np.median(rel)), float(np.percentile(rel, 90))
+
+    stamps_only = run(False)
+    rows = run(True)
+    assert stamps_only[0] > 0.05 and stamps_only[1] > 0.15
+    assert rows[0] < 0.04 and rows[1] < 0.11
+    with pytest.raises(InvalidInputError):
+        Readout(0.0, np.zeros((9, 3, 3)), np.zeros((9, 3, 3)))
+    with pytest.raises(InvalidInputError):
+        Readout(0.03, np.zeros((9, 3, 3)), np.zeros((5, 3, 3)))

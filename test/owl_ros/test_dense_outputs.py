@@ -198,3 +198,42 @@ def test_max_rate_follows_the_stamps(
     later = int(stamps[-1] + 2e9)
     assert stage.due(later)
     assert stage.due(later + round(1e9 / camera_hz)) == (cap_hz == 0)  # the next: too soon
+
+
+def test_a_rolling_shutter_bag_gets_each_row_from_its_own_time(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    """brisk (a handheld walk's turns and bobbing) with a 30 ms rolling-shutter readout and
+    ``rolling_shutter_readout_s`` set: the dense stage takes the engine's gyro rotations of
+    both images' row times (owl_core.dense.Readout). Against the truth the r/|t| median
+    error is 5 % and the p90 16 %; the same images derotated with the stamps' rotation
+    alone read 26 % and 43 % (measured when this test was written)."""
+    base = tmp_path_factory.mktemp("rolling")
+    bag = base / "brisk"
+    args = ["brisk", str(bag), "--seconds", "1.5", "--width", str(WIDTH), "--height"]
+    args += [str(HEIGHT), "--quiet", "--seed", "5", "--rolling-shutter-readout", "0.03"]
+    assert make_bag.main(args) == 0
+    node = build_options(
+        {"dense": True, "dense_width": DW, "dense_height": DH, "rolling_shutter_readout_s": 0.03}
+    )
+    process_bag(bag, base / "out", ProcessOptions(node=node))
+    with BagReader(bag) as reader:
+        types = {t: i.msgtype for t, i in reader.topics.items()}
+        truth, speed = {}, {}
+        for raw in reader.messages(["/ground_truth/range", "/ground_truth/twist"]):
+            msg = deserialize_message(raw.data, message_class(types[raw.topic]))
+            if raw.topic == "/ground_truth/range":
+                truth[header_to_ns(msg.header)] = image_to_array(msg)
+            else:
+                v = msg.twist.linear
+                speed[header_to_ns(msg.header)] = math.hypot(v.x, v.y, v.z)
+    errors = []
+    for _, _, msg in read(base / "out")["/owl/range_over_speed"][10:]:
+        stamp = header_to_ns(msg.header)
+        est = image_to_array(msg)
+        r = truth[stamp].reshape(DH, 2, DW, 2).mean(axis=(1, 3)) / speed[stamp]
+        ok = np.isfinite(est) & np.isfinite(r) & (r < 1e3)
+        errors.append(np.abs(est[ok] - r[ok]) / r[ok])
+    rel = np.concatenate(errors)
+    assert rel.size > 0.15 * DW * DH * len(errors)
+    assert np.median(rel) < 0.1 and np.percentile(rel, 90) < 0.3
