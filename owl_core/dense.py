@@ -629,14 +629,20 @@ def _derotate(
 def _rotate_from_rows(table: F64, fraction: F32, planes: F32) -> F32:
     """Bearings ``planes`` (3, h, w) seen at row fractions ``fraction`` (h, w) rotated by
     the row-time rotations ``table`` (M + 1, 3, 3), interpolated linearly between its rows:
-    (3, h, w) float32."""
+    (3, h, w) float32. The nine matrix entries are gathered as planes and applied as nine
+    plane products (a fifth of an einsum over (h, w, 3, 3): 4 ms at 320x240)."""
     m = table.shape[0] - 1
-    tab = np.asarray(table, dtype=np.float32)
+    tab = np.asarray(table, dtype=np.float32).reshape(m + 1, 9).T  # (9, M + 1)
+    step = tab[:, 1:] - tab[:, :-1]
     x = np.clip(fraction, 0.0, 1.0) * np.float32(m)
     j = np.minimum(x.astype(np.intp), m - 1)
-    a = (x - j)[..., None, None]
-    rot = tab[j] * (1.0 - a) + tab[j + 1] * a  # (h, w, 3, 3)
-    out: F32 = np.einsum("hwij,jhw->ihw", rot, planes, optimize=False)
+    rot = np.take(tab[:, :-1], j, axis=1)  # (9, h, w): row-major entries of each matrix
+    rot += np.take(step, j, axis=1) * (x - j)
+    out: F32 = np.empty_like(planes)
+    for i in range(3):  # output components: three planes, not a per-pixel loop
+        np.multiply(rot[3 * i], planes[0], out=out[i])
+        out[i] += rot[3 * i + 1] * planes[1]
+        out[i] += rot[3 * i + 2] * planes[2]
     return out
 
 
