@@ -630,7 +630,10 @@ def _rotate_from_rows(table: F64, fraction: F32, planes: F32) -> F32:
     """Bearings ``planes`` (3, h, w) seen at row fractions ``fraction`` (h, w) rotated by
     the row-time rotations ``table`` (M + 1, 3, 3), interpolated linearly between its rows:
     (3, h, w) float32. The nine matrix entries are gathered as planes and applied as nine
-    plane products (a fifth of an einsum over (h, w, 3, 3): 4 ms at 320x240)."""
+    plane products (a fifth of an einsum over (h, w, 3, 3): 4 ms at 320x240).
+    :meth:`owl_core.rolling_shutter.ReadoutRotations.to_stamp` does the same exactly per
+    point (an SO(3) exponential each), for the sparse tracks; over a whole grid it took
+    64 ms, and the linear chord differs from it by under 2e-6 here."""
     m = table.shape[0] - 1
     tab = np.asarray(table, dtype=np.float32).reshape(m + 1, 9).T  # (9, M + 1)
     step = tab[:, 1:] - tab[:, :-1]

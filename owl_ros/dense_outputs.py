@@ -210,7 +210,8 @@ class DenseStage:
         self, engine: OwlEngine | None, camera: CameraModel | None, image: Any, result: Any
     ) -> DenseJob | None:
         """Keep one frame's image (``(H, W)`` uint8 grey; ``result`` the engine's
-        FrameResult); the job to measure, or None (first frame, no engine yet, bad image)."""
+        FrameResult); the job to measure, or None (first frame, no engine yet, bad image,
+        or not :meth:`due` under ``dense_max_rate_hz``: the image is kept all the same)."""
         if engine is None or camera is None:
             return None
         opts = dense_options(self.options)
@@ -225,7 +226,7 @@ class DenseStage:
                 self._last.error = f"dense: {err}"
             dense.reset()
             return None
-        if pair is None:
+        if pair is None or not self.due(pair.stamp_ns):
             return None
         rotation = None
         readout = None
@@ -430,7 +431,7 @@ class DensePublishers:
         self._idle = False
         job = self.stage.begin(engine, camera, out.image, out.result)
         work = self.stage.camera_info_model
-        if job is None or work is None or not self.stage.due(job.pair.stamp_ns):
+        if job is None or work is None:
             return
         with self._cond:
             if self._pending is not None:
@@ -506,7 +507,7 @@ class DenseWriter:
         from msg_adapters.stamps import header_to_ns
 
         job = self.stage.begin(engine, camera, out.image, out.result)
-        if job is None or not self.stage.due(job.pair.stamp_ns):
+        if job is None:
             return
         result = self.stage.finish(job)
         work = self.stage.camera_info_model
