@@ -235,7 +235,7 @@ def measure(
     live = LiveNode(cmd, env=env).start()
     node_pid = live.pid
     context = Context()
-    rclpy.init(context=context, domain_id=dom)
+    rclpy.init(args=[PROG], context=context, domain_id=dom)
     node = rclpy.create_node("owl_latency", context=context)
     arrivals: list[tuple[int, int, int]] = []  # (stamp, arrival wall ns, points)
 

@@ -532,7 +532,7 @@ def _run_with_bag(opts: SoakOptions, bag: Path, log_path: Path, stream: TextIO) 
     live = LiveNode(cmd, env=env, stdout=log, stderr=subprocess.STDOUT).start()
     node_pid = live.pid
     context = Context()
-    rclpy.init(context=context, domain_id=domain)
+    rclpy.init(args=[PROG], context=context, domain_id=domain)
     node = rclpy.create_node("owl_soak", context=context)
     t0 = [time.monotonic()]
 
