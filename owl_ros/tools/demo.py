@@ -36,7 +36,7 @@ from bags.errors import BagError
 from owl_core.errors import OwlError
 from owl_ros.tools.errors import DemoError, ToolError
 from owl_ros.tools.live import LiveNode
-from owl_ros.topics import RESULT_TOPICS
+from owl_ros.topics import DIAGNOSTICS, HEADING, POINTS, RESULT_TOPICS
 
 PROG = "owl_demo"
 
@@ -47,6 +47,8 @@ METHOD_NAMES = {
     "cv-5pt": "OpenCV 5-point",
     "cv-gyro": "OpenCV gyro-aided",
 }
+#: longest wait for owl_record's subscriptions to the node's outputs before the replay, s.
+RECORDER_WAIT_S = 30.0
 #: longest the demo stays silent: a step that prints nothing for this long gets a line, s.
 HEARTBEAT_S = 3.0
 
@@ -211,6 +213,16 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
             if code is not None:
                 tail = logs[name].read_text().strip().splitlines()[-1:]
                 raise DemoError(f"{name} exited (status {code}): {tail}")
+        # owl_record subscribes to a topic once it has seen its publisher; on a loaded
+        # machine that took longer than the sleep above, and the node's first outputs went
+        # unrecorded (owl_replay waits for the node's subscriptions, not for the recorder's)
+        topics = [t.bag for t in (POINTS, HEADING, DIAGNOSTICS)]
+        missing = _wait_for_subscribers(topics, int(env["ROS_DOMAIN_ID"]), RECORDER_WAIT_S)
+        if missing:
+            raise DemoError(
+                f"owl_record has not subscribed to {', '.join(missing)} after "
+                f"{RECORDER_WAIT_S:g} s (see {logs['owl_record']})"
+            )
         log("  owl_replay at half speed (the node processes every frame)")
         rep = subprocess.run(
             [
@@ -251,6 +263,30 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
     if not out_bag.exists():
         raise DemoError("owl_record wrote no bag")
     return "owl_node over DDS (owl_replay -> owl_node -> owl_record)"
+
+
+def _wait_for_subscribers(topics: Sequence[str], domain_id: int, timeout_s: float) -> list[str]:
+    """Wait until each of ``topics`` has a subscriber in the ROS graph of ``domain_id``;
+    the topics still without one after ``timeout_s`` seconds (empty: all have one)."""
+    import rclpy
+    from rclpy.context import Context
+
+    context = Context()
+    rclpy.init(args=[PROG], context=context, domain_id=domain_id)
+    try:
+        node = rclpy.create_node("owl_demo_graph", context=context)
+        deadline = time.monotonic() + timeout_s
+        while True:  # the graph is kept by the middleware's discovery: no spinning needed
+            missing = [t for t in topics if node.count_subscribers(t) == 0]
+            if not missing or time.monotonic() >= deadline:
+                break
+            time.sleep(0.1)
+        # the node's writers match the recorder's readers a moment after the graph shows them
+        time.sleep(0.5 if not missing else 0.0)
+        node.destroy_node()
+        return missing
+    finally:
+        rclpy.try_shutdown(context=context)
 
 
 def _cube_figure(args: argparse.Namespace, fig_dir: Path, cache: Path, log: _Log) -> Path:
