@@ -238,17 +238,18 @@ class MipTexture:
         fy = np.floor(ys)
         wx = xs - fx
         wy = ys - fy
-        size = self.sizes[lvl]
+        # np.take: the same gathers as indexing, faster on 1-D arrays
+        size = np.take(self.sizes, lvl)
         mask = size - np.int32(1)
         stride = size + np.int32(1)
-        i00 = self.offsets[lvl] + (fy.astype(np.int32) & mask) * stride
+        i00 = np.take(self.offsets, lvl) + (fy.astype(np.int32) & mask) * stride
         i00 += fx.astype(np.int32) & mask
         f = self.flat
-        a = f[i00]
-        b = f[i00 + 1]
+        a = np.take(f, i00)
+        b = np.take(f, i00 + 1)
         i00 += stride
-        c = f[i00]
-        d = f[i00 + 1]
+        c = np.take(f, i00)
+        d = np.take(f, i00 + 1)
         top = a + wx * (b - a)
         bot = c + wx * (d - c)
         out: F32 = top + wy * (bot - top)
