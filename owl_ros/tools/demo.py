@@ -216,13 +216,7 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
         # owl_record subscribes to a topic once it has seen its publisher; on a loaded
         # machine that took longer than the sleep above, and the node's first outputs went
         # unrecorded (owl_replay waits for the node's subscriptions, not for the recorder's)
-        topics = [t.bag for t in (POINTS, HEADING, DIAGNOSTICS)]
-        missing = _wait_for_subscribers(topics, int(env["ROS_DOMAIN_ID"]), RECORDER_WAIT_S)
-        if missing:
-            raise DemoError(
-                f"owl_record has not subscribed to {', '.join(missing)} after "
-                f"{RECORDER_WAIT_S:g} s (see {logs['owl_record']})"
-            )
+        _wait_for_recorder(node, int(env["ROS_DOMAIN_ID"]))
         log("  owl_replay at half speed (the node processes every frame)")
         rep = subprocess.run(
             [
@@ -265,28 +259,28 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
     return "owl_node over DDS (owl_replay -> owl_node -> owl_record)"
 
 
-def _wait_for_subscribers(topics: Sequence[str], domain_id: int, timeout_s: float) -> list[str]:
-    """Wait until each of ``topics`` has a subscriber in the ROS graph of ``domain_id``;
-    the topics still without one after ``timeout_s`` seconds (empty: all have one)."""
+def _wait_for_recorder(node: LiveNode, domain_id: int) -> None:
+    """Wait until the node's points, heading and diagnostics have a subscriber (owl_record)
+    in the ROS graph of ``domain_id``; LiveNodeError after ``RECORDER_WAIT_S`` or when the
+    node exits first."""
     import rclpy
     from rclpy.context import Context
 
+    topics = [t.bag for t in (POINTS, HEADING, DIAGNOSTICS)]
     context = Context()
     rclpy.init(args=[PROG], context=context, domain_id=domain_id)
     try:
-        node = rclpy.create_node("owl_demo_graph", context=context)
-        deadline = time.monotonic() + timeout_s
-        while True:  # the graph is kept by the middleware's discovery: no spinning needed
-            missing = [t for t in topics if node.count_subscribers(t) == 0]
-            if not missing or time.monotonic() >= deadline:
-                break
-            time.sleep(0.1)
-        # the node's writers match the recorder's readers a moment after the graph shows them
-        time.sleep(0.5 if not missing else 0.0)
-        node.destroy_node()
-        return missing
+        graph = rclpy.create_node("owl_demo_graph", context=context)
+        # the graph is kept by the middleware's discovery: no spinning needed
+        node.wait_until(
+            lambda: all(graph.count_subscribers(t) > 0 for t in topics),
+            RECORDER_WAIT_S,
+            f"recorded: owl_record did not subscribe to {', '.join(topics)}",
+        )
+        graph.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
+    time.sleep(0.5)  # the node's writers match the recorder's readers just after the graph
 
 
 def _cube_figure(args: argparse.Namespace, fig_dir: Path, cache: Path, log: _Log) -> Path:
