@@ -405,7 +405,7 @@ def median_measurement(runs: Sequence[Measurement]) -> dict[str, float]:
     out = {
         k: float(np.median([r[k] for r in rows]))
         for k, v in rows[0].items()
-        if k != "images_per_frame"
+        if not isinstance(v, dict)
     }
     for topic in rows[0]["images_per_frame"]:
         out[f"images_per_frame {topic}"] = float(
