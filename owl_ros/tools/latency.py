@@ -16,7 +16,11 @@ rate the node keeps up with. CPU (all threads of the node process) and RSS come 
 
 ``--case`` selects a standard input (size, rate, features) and its real-time targets
 (:data:`CASES`); each run's line says which targets it meets, and with ``--runs N`` a last
-line per case gives the medians over the runs.
+line per case gives the medians over the runs. ``--max-features N`` measures a case with N
+features instead (the other settings of the node with ``-p NAME:=VALUE``):
+
+    python -m owl_ros.tools.latency --case vga30 --runs 3 --max-features 500 \
+        -p tracker_lk_deformation_correction:=false
 
 The publishing side uses :mod:`bags.dds`'s Fast DDS profile (a 16 MiB shared-memory
 segment, as a camera driver publishing 720p should; ``--default-transport`` measures
@@ -423,7 +427,7 @@ def _run_case(name: str, args: argparse.Namespace, node_args: list[str]) -> None
             clip,
             1.0,
             args.seconds,
-            max_features=case.max_features,
+            max_features=args.max_features or case.max_features,
             node_args=node_args,
             image_topics=args.subscribe_image,
         )
@@ -457,8 +461,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--clip-seconds", type=float, default=2.0, help="rendered clip, s")
     p.add_argument("--seconds", type=float, default=10.0, help="measurement window, s")
     p.add_argument(
-        "--max-features", type=int, default=1000, help="owl_node max_features (default 1000)"
-    )
+        "--max-features", type=int, default=None,
+        help="owl_node max_features (default 1000; with --case it replaces the case's 1000, "
+        "and the targets are still judged)",
+    )  # fmt: skip
     p.add_argument(
         "--speed", type=float, nargs="+", default=[1.0],
         help="rate factors: the clip is played this many times faster (default 1)",
@@ -473,7 +479,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=sorted(CASES),
         default=[],
         help="standard input with targets (repeatable; replaces --width/--height/--rate/"
-        "--max-features/--speed): "
+        "--speed): "
         + ", ".join(f"{k} {c.width}x{c.height}@{c.rate_hz:g}Hz" for k, c in CASES.items()),
     )
     p.add_argument("--runs", type=int, default=1, help="runs per --case (medians printed)")
@@ -498,6 +504,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.runs < 1:
         p.error(f"--runs must be >= 1, got {args.runs}")
+    if args.max_features is not None and args.max_features < 1:
+        p.error(f"--max-features must be >= 1, got {args.max_features}")
+    for item in args.param:  # the tool sets it, and records it in every measurement
+        if item.split(":=", 1)[0].strip() == "max_features":
+            p.error(f"-p {item}: give the feature count as --max-features, not as -p")
 
     def say(text: str) -> None:
         if not args.quiet:
@@ -511,7 +522,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.case:
         node_args = [x for item in args.param for x in ("-p", item)]
         for name in args.case:
-            say(f"case {name}: {args.runs} run(s) of about {args.seconds + WARMUP_S + 3:.0f} s")
+            features = args.max_features or CASES[name].max_features
+            say(
+                f"case {name} with {features} features: {args.runs} run(s) of about "
+                f"{args.seconds + WARMUP_S + 3:.0f} s"
+            )
             _run_case(name, args, node_args)
         return 0
     say(f"rendering {args.clip_seconds:g} s of {args.scenario} at {args.width}x{args.height}")
@@ -526,7 +541,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             clip,
             speed,
             args.seconds,
-            max_features=args.max_features,
+            max_features=args.max_features or 1000,
             node_args=node_args,
             image_topics=args.subscribe_image,
         )

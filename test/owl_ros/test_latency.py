@@ -66,6 +66,26 @@ def test_runs_must_be_positive(capsys: pytest.CaptureFixture[str]) -> None:
     assert "--runs must be >= 1, got 0" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["-p", "max_features:=250"], "-p max_features:=250: give the feature count as"),
+        (["--case", "vga30", "-p", "max_features := 250"], "give the feature count as"),
+        (["--case", "vga30", "--max-features", "0"], "--max-features must be >= 1, got 0"),
+    ],
+)
+def test_the_feature_count_is_an_option_of_the_tool(
+    argv: list[str], says: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The tool sets max_features and records it in each measurement: a -p for it would
+    win in the node and leave the record wrong, so it is refused (before anything runs)."""
+    with pytest.raises(SystemExit) as err:
+        latency.main(argv)
+    assert err.value.code == 2
+    out = capsys.readouterr().err
+    assert says in out and out.count("\n") == 1
+
+
 @pytest.mark.parametrize("module", [latency, process, ev, bench, demo, soak, make_bag])
 def test_every_option_has_help(module) -> None:
     parser = module.build_parser()
