@@ -6,7 +6,8 @@
         frame:=camera_optical_frame
 
 ``camera_to_imu_rotation_xyzw`` and ``imu_time_offset`` override the parameter file when
-given (empty: the file's value; for the rotation, TF when the file keeps the identity).
+given (empty: the file's value; for the rotation, TF when the file does not set it, as the
+shipped config/owl.yaml does not).
 ``frame`` is RViz's fixed frame: the frame_id of your camera's images.
 """
 

@@ -4,10 +4,10 @@ No calibration target and no ground truth: the rotation the images show from fra
 frame is aligned with the integrated gyro (``owl_core.calibration``). Reads the image
 (raw or compressed), camera_info and IMU topics; prints the parameter lines with their
 1-sigma uncertainties, and with ``-o FILE`` writes a ROS 2 parameter file for node
-``owl`` (``owl: ros__parameters: ...``) usable with ``--params-file`` by ``owl_node`` and
-``owl_process``. When the bag has ``/tf_static``, also prints the angle between its
-camera-IMU rotation and the estimate. A recording whose rotation does not excite two
-axes is refused in one line (exit 3) that says what motion to record.
+``owl`` in any namespace (``/**: ros__parameters: ...``) usable with ``--params-file``
+by ``owl_node`` and ``owl_process``. When the bag has ``/tf_static``, also prints the
+angle between its camera-IMU rotation and the estimate. A recording whose rotation does
+not excite two axes is refused in one line (exit 3) that says what motion to record.
 
 Exit status: 0 done, 1 bad bag / calibration impossible, 2 bad command line,
 3 not excited (record again).
@@ -183,8 +183,9 @@ def params_yaml(found: BagCalibration, source: str) -> str:
     sig_deg = np.degrees(r.rotation_sigma_rad)
     lines = [
         f"# Written by {PROG} from {source}: {found.frames} frames, {found.seconds:.1f} s,",
-        f"# {r.intervals_used} frame intervals fitted. Load with --params-file.",
-        "owl:",
+        f"# {r.intervals_used} frame intervals fitted. Load with --params-file ('/**': the",
+        "# node in any namespace).",
+        "/**:",
         "  ros__parameters:",
         f"    # 1-sigma of the rotation about IMU x y z: {_fmt(sig_deg, 3)} deg",
         f"    camera_to_imu_rotation_xyzw: {_fmt(r.camera_to_imu_xyzw)}",

@@ -295,6 +295,8 @@ class OwlNode(Node):
         rotation = self.options.engine.camera_to_imu_rotation_xyzw
         if "camera_to_imu_rotation_xyzw" in self._parameter_overrides:
             source = "parameter"
+            if tuple(rotation) == (0.0, 0.0, 0.0, 1.0) and tf_available():
+                source += f" ({node_report.IDENTITY_BLOCKS_TF})"
         elif tf_available():
             self._tf = TfExtrinsic(self)
             source = "default (identity) until TF has the IMU -> camera transform"

@@ -46,6 +46,12 @@ EXTRINSIC_HOWTO = (
     "set it with -p camera_to_imu_rotation_xyzw:=[x,y,z,w] (owl_process: "
     "--camera-to-imu-rotation-xyzw X,Y,Z,W) or publish the IMU -> camera transform on TF"
 )
+#: said when the rotation parameter is set to the identity where TF could give it (an old
+#: copy of config/owl.yaml listed it): a parameter always wins over TF.
+IDENTITY_BLOCKS_TF = (
+    "the identity, set: TF is not looked up; leave the parameter unset (remove it from the "
+    "parameter file) to take the rotation from TF"
+)
 #: seconds between two WARN lines about the same problem.
 WARN_PERIOD_S = 10.0
 

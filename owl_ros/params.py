@@ -851,6 +851,17 @@ def descriptor(p: Param) -> Any:
     return desc
 
 
+#: parameters that config/owl.yaml lists commented out, and why: setting one there would
+#: change what the node does when it is not set.
+UNSET_IN_FILE = {
+    "camera_to_imu_rotation_xyzw": (
+        "Not set here: unset, the node takes it from TF (the IMU -> camera optical frame "
+        "transform, once both frame_ids are known) and owl_process from the bag's /tf_static, "
+        "else the identity; set, it overrides TF."
+    ),
+}
+
+
 def config_yaml() -> str:
     """The text of ``config/owl.yaml``: every parameter with its default, meaning, range
     and read-only flag, as a ROS 2 parameter file for node ``owl``."""
@@ -864,7 +875,9 @@ def config_yaml() -> str:
         "# others may be changed at runtime (ros2 param set /owl NAME VALUE; the engine then",
         "# restarts its tracks). Doubles need a decimal point (1.0, not 1): ROS 2 parameter",
         "# types are strict. Generated from owl_ros/params.py by params.config_yaml().",
-        "owl:",
+        "# '/**' applies it to the node in any namespace and under any name (-r __ns:=/robot1,",
+        "# ros2 launch ... namespace:=robot1); a key 'owl' would match /owl only.",
+        "/**:",
         "  ros__parameters:",
     ]
 
@@ -891,5 +904,11 @@ def config_yaml() -> str:
             extra.append("read-only")
         if extra:
             out.append(f"    # ({'; '.join(extra)})")
+        if p.name in UNSET_IN_FILE:
+            out += textwrap.wrap(
+                UNSET_IN_FILE[p.name], 92, initial_indent="    # ", subsequent_indent="    # "
+            )
+            out.append(f"    # {p.name}: {fmt(p)}")
+            continue
         out.append(f"    {p.name}: {fmt(p)}")
     return "\n".join(out) + "\n"

@@ -539,12 +539,14 @@ def _params_file(path: str) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ProcessError(f"--params-file {path}: expected a mapping of node names")
     values: dict[str, Any] = {}
-    for key in ("/**", "owl", "/owl"):
+    for key in ("/**", "/**/owl", "owl", "/owl"):
         section = data.get(key)
         if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
             values.update(section["ros__parameters"])
     if not values:
-        raise ProcessError(f"--params-file {path}: no 'owl: ros__parameters:' section")
+        raise ProcessError(
+            f"--params-file {path}: no '/**: ros__parameters:' or 'owl: ros__parameters:' section"
+        )
     values.pop("use_sim_time", None)
     return values
 

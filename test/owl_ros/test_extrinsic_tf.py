@@ -33,6 +33,7 @@ from msg_adapters.stamps import make_header
 from owl_core.camera import CameraModel
 from owl_ros.extrinsic_tf import tf_available
 from owl_ros.node import OwlNode
+from owl_ros.node_report import IDENTITY_BLOCKS_TF
 
 CAMERA_FRAME = "camera_optical_frame"
 IMU_FRAME = "imu_link"
@@ -173,6 +174,28 @@ def test_the_parameter_wins_over_tf(
     log = out.out + out.err
     assert "camera_to_imu_rotation_xyzw [0, 0, 0.6, 0.8] from parameter" in log, log
     assert "from TF" not in log, log
+
+
+def test_an_identity_parameter_says_that_it_keeps_tf_out(
+    make_node: Callable[..., OwlNode],
+    monkeypatch: pytest.MonkeyPatch,
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    """The identity from a parameter (an old copy of config/owl.yaml listed it) still wins
+    over TF, and the start-up line says how to get TF's rotation instead."""
+    fake = FakeTf()
+    monkeypatch.setitem(sys.modules, "tf2_ros", fake.module)
+    node = make_node(Parameter("camera_to_imu_rotation_xyzw", value=[0.0, 0.0, 0.0, 1.0]))
+    feed(node)
+    wait_for(lambda: engine_rotation(node) is not None, "the engine")
+    time.sleep(0.3)  # a few diagnostics periods, when TF would be looked up
+    assert engine_rotation(node) == (0.0, 0.0, 0.0, 1.0)
+    assert fake.listeners == [] and fake.lookups == []
+    out = capfd.readouterr()
+    log = out.out + out.err
+    line = f"[0, 0, 0, 1] from parameter ({IDENTITY_BLOCKS_TF})"
+    assert line in log, log
+    assert "remove it from the parameter file" in IDENTITY_BLOCKS_TF
 
 
 def test_a_parameter_set_while_tf_is_awaited_wins(

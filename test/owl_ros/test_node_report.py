@@ -17,6 +17,7 @@ from owl_ros import node_report
 from owl_ros.node_report import SilenceWatch
 
 NODE = [sys.executable, "-m", "owl_ros.node"]
+CONFIG = Path(__file__).resolve().parents[2] / "config" / "owl.yaml"
 
 
 def test_integer_overrides_become_doubles_for_double_parameters() -> None:
@@ -130,3 +131,15 @@ def test_node_start_up_line_and_silent_topic_warnings(
     # no extrinsic given: the identity, with a warning saying how to set it
     code, out = _node([], env, 60.0, until="listening on", after_s=0.5)
     assert "from default (identity)" in out and "using the identity" in out, out
+    # a parameter file as owl_calibrate writes it ('/**'), and the shipped one (no
+    # rotation: it does not hide TF's), reach the node in a namespace too
+    calib = tmp_path / "calib.yaml"
+    calib.write_text(
+        "/**:\n  ros__parameters:\n    camera_to_imu_rotation_xyzw: [0.0, 0.0, 0.6, 0.8]\n"
+    )
+    expected = ((calib, "[0, 0, 0.6, 0.8] from parameter"), (CONFIG, "[0, 0, 0, 1] from default"))
+    for params, says in expected:
+        args = ["-r", "__ns:=/robot1", "--params-file", str(params)]
+        code, out = _node(args, env, 60.0, until="listening on", after_s=0.5)
+        (start,) = [ln for ln in out.splitlines() if ln.startswith("[INFO] listening on")]
+        assert "imu /robot1/imu" in start and f"camera_to_imu_rotation_xyzw {says}" in start, out

@@ -138,15 +138,23 @@ def test_parse_value_like_ros2_param_set() -> None:
 def test_config_yaml_lists_every_parameter_with_its_default(repo_root: Path) -> None:
     text = (repo_root / "config" / "owl.yaml").read_text()
     data = yaml.safe_load(text)
-    values = data["owl"]["ros__parameters"]
-    assert set(values) == {p.name for p in P.PARAMS}
+    # '/**': the node in any namespace (a key 'owl' is ignored under -r __ns:=/robot1)
+    assert list(data) == ["/**"]
+    values = data["/**"]["ros__parameters"]
+    # the rotation is listed commented out: set, it would stop the node taking it from TF
+    assert set(P.UNSET_IN_FILE) == {"camera_to_imu_rotation_xyzw"}
+    assert set(values) == {p.name for p in P.PARAMS} - set(P.UNSET_IN_FILE)
+    lines = text.splitlines()
     for p in P.PARAMS:
         default = list(p.default) if p.kind == "double_array" else p.default
+        if p.name in P.UNSET_IN_FILE:
+            at = lines.index(f"    # {p.name}: {list(default)}")
+            assert yaml.safe_load(lines[at].replace("#", "", 1))[p.name] == default
+            continue
         assert values[p.name] == default, p.name
         if p.kind == "double":  # ROS types are strict: a double must be written as one
             assert isinstance(values[p.name], float), p.name
         # documented: a comment line right above the value
-        lines = text.splitlines()
         at = next(i for i, line in enumerate(lines) if line.strip().startswith(f"{p.name}:"))
         assert lines[at - 1].strip().startswith("#"), p.name
     assert P.build_options(values) == P.NodeOptions()
