@@ -207,6 +207,16 @@ def _has_mcap_magic(path: Path) -> bool:
         return False
 
 
+def _dataset_hint(folder: Path) -> str:
+    """A hint when ``folder`` holds a dataset that owl_import converts ("" otherwise)."""
+    asl = (folder / "mav0").is_dir() or (folder.name == "mav0" and (folder / "cam0").is_dir())
+    kitti = (folder / "times.txt").is_file() and (folder / "calib.txt").is_file()
+    if asl or kitti:
+        kind = "an ASL (EuRoC, TUM-VI) folder" if asl else "a KITTI odometry sequence"
+        return f" ({kind}: convert it first with owl_import {folder} OUT_BAG)"
+    return ""
+
+
 class BagReader:
     """Reads a rosbag2 directory (metadata.yaml + storage files) or a bare ``.mcap`` file.
 
@@ -238,7 +248,7 @@ class BagReader:
             self._mcap_files = sorted(self.path.glob("*.mcap"))
             if not (self.path / "metadata.yaml").is_file() and not (recover and self._mcap_files):
                 msg = f"not a bag: {self.path} is a directory without metadata.yaml"
-                raise NotABagError(msg)
+                raise NotABagError(msg + _dataset_hint(self.path))
         elif not _has_mcap_magic(self.path):
             msg = f"not a bag: {self.path} is neither a rosbag2 directory nor an MCAP file"
             raise NotABagError(msg)

@@ -27,6 +27,7 @@ from __future__ import annotations
 import collections
 import signal
 import sys
+import textwrap
 import threading
 import time
 from collections.abc import Sequence
@@ -59,7 +60,7 @@ from owl_ros.heap import keep_freed_memory
 from owl_ros.params import PARAMS, ParameterError, build_options, descriptor, validate
 from owl_ros.pipeline import Output, Pipeline
 from owl_ros.roles import Role
-from owl_ros.topics import GYRO_BIAS
+from owl_ros.topics import GYRO_BIAS, RESULT_TOPICS
 
 PROG = "owl_node"
 NODE_NAME = "owl"
@@ -303,9 +304,11 @@ class OwlNode(Node):
         else:
             source = "default (identity)"
             log.warning(node_report.extrinsic_warning(tf_available=False))
-        pubs = [self._points_pub, self._heading_pub, self._heading_cov_pub, self._diag_pub]
-        pubs.append(self._marker_pub)
-        names = [p.topic_name for p in pubs + ([self._debug_pub] if self._debug_pub else [])]
+        pubs = [self._points_pub, self._heading_pub, self._heading_cov_pub, self._bias_pub]
+        pubs += [self._diag_pub, self._marker_pub]
+        pubs += [self._debug_pub] if self._debug_pub else []
+        pubs += self._dense.publishers if self._dense is not None else []
+        names = [p.topic_name for p in pubs]
         log.info(
             node_report.startup_line(
                 self._topics, names, rotation, source, self.options.speed_source
@@ -533,8 +536,14 @@ def _help() -> str:
     lines = [
         f"usage: {PROG} [--ros-args -p NAME:=VALUE ... --params-file FILE -r FROM:=TO ...]",
         "",
-        "OWL node 'owl': subscribes image (or image/compressed), camera_info, imu; publishes",
-        "owl/points, owl/heading, owl/gyro_bias, /diagnostics, owl/debug_image. Parameters:",
+        *textwrap.wrap(
+            "OWL node 'owl': subscribes image (or image/compressed), camera_info, imu (and "
+            "the speed_topic with speed_source); publishes "
+            + ", ".join(t.name for t in RESULT_TOPICS)
+            + ", owl/debug_image (publish_debug_image) and the dense images and cloud "
+            "(dense). Parameters:",
+            88,
+        ),
     ]
     for p in PARAMS:
         ro = ", read-only" if p.read_only else ""

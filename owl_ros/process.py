@@ -29,6 +29,7 @@ Python use (evaluation, demo)::
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from collections import Counter
@@ -127,6 +128,10 @@ class Summary:
         heading_sigma_rad: (K,) float64 1-sigma heading uncertainty, rad.
         extrinsic_source: "option", "tf_static" or "default" (identity).
         camera_to_imu_rotation_xyzw: the rotation used.
+        tf_static_rotation_xyzw: the bag's /tf_static rotation (also when another was
+            given), or None.
+        calibration_warning: the live calibration check's last verdict when it found images
+            and gyro disagreeing (one line), else None.
         counts: pipeline totals (drops, skips, IMU problems...).
         reasons: reasons for frames without points, with counts.
         damage: one line when the input bag was truncated/corrupt (the readable part was
@@ -144,6 +149,8 @@ class Summary:
     heading_sigma_rad: npt.NDArray[np.float64]
     extrinsic_source: str
     camera_to_imu_rotation_xyzw: tuple[float, float, float, float]
+    tf_static_rotation_xyzw: tuple[float, float, float, float] | None
+    calibration_warning: str | None
     counts: dict[str, int]
     reasons: dict[str, int]
     damage: str | None
@@ -275,6 +282,8 @@ class _Run:
         self.extrinsic_source = "option" if not opts.rotation_from_tf else "default"
         self.rotation = opts.node.engine.camera_to_imu_rotation_xyzw
         self.decided = not opts.rotation_from_tf
+        self.tf_static_rotation: tuple[float, float, float, float] | None = None
+        self.tf_looked_up = False
         self.stamps: list[int] = []
         self.headings: list[npt.NDArray[np.float64]] = []
         self.sigmas: list[float] = []
@@ -319,8 +328,13 @@ class _Run:
         self.writer.write(DIAGNOSTICS.bag, max(now_ns, 0), msg)
 
     def _camera_info(self, msg: Any) -> None:
+        if not self.tf_looked_up:  # kept to compare with a given rotation
+            self.tf_looked_up = True
+            self.tf_static_rotation = tf_rotation(
+                self.transforms, self.imu_frame, msg.header.frame_id
+            )
         if not self.decided:  # the first camera_info decides the extrinsic from /tf_static
-            found = tf_rotation(self.transforms, self.imu_frame, msg.header.frame_id)
+            found = self.tf_static_rotation
             if found is not None:
                 self.rotation, self.extrinsic_source = found, "tf_static"
                 self.pipeline.reconfigure(
@@ -347,7 +361,7 @@ class _Run:
         the pipeline's ready outputs and, every diagnostics period, its diagnostics."""
         now = self.now_ns = raw.log_time_ns
         role = self.roles.get(raw.topic)
-        if raw.topic == TF_STATIC and not self.decided:
+        if raw.topic == TF_STATIC and not self.tf_looked_up:
             self.transforms.extend(self.bag.deserialize(raw).transforms)
         elif role is not None:
             self._dispatch(raw, role)
@@ -407,7 +421,7 @@ def process_bag(
         roles = _check_topics(bag, opts)
         infos = bag.topics
         read_topics = list(roles)
-        if TF_STATIC in infos and opts.rotation_from_tf:
+        if TF_STATIC in infos:  # also with a given rotation: the summary compares the two
             read_topics.append(TF_STATIC)
         copy = sorted(infos) if opts.copy_inputs else []
         total = sum(infos[t].count for t in set(read_topics) | set(copy))
@@ -450,6 +464,12 @@ def process_bag(
         heading_sigma_rad=np.asarray(run.sigmas, dtype=np.float64),
         extrinsic_source=run.extrinsic_source,
         camera_to_imu_rotation_xyzw=tuple(float(v) for v in run.rotation),  # type: ignore[arg-type]
+        tf_static_rotation_xyzw=run.tf_static_rotation,
+        calibration_warning=(
+            verdict.message
+            if (verdict := run.pipeline.calibration_verdict) is not None and verdict.disagrees
+            else None
+        ),
         counts=totals,
         reasons=dict(run.reasons),
         damage=damage,
@@ -494,7 +514,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--camera-to-imu-rotation-xyzw",
         metavar="X,Y,Z,W",
         default=None,
-        help="camera-to-IMU rotation quaternion (default: from /tf_static, else identity)",
+        help="camera-to-IMU rotation quaternion, or [x, y, z, w] as owl_import and "
+        "owl_calibrate print it (default: from /tf_static, else identity)",
     )
     p.add_argument(
         "--imu-time-offset",
@@ -573,7 +594,9 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
         rotation_given |= name == "camera_to_imu_rotation_xyzw"
     if args.camera_to_imu_rotation_xyzw is not None:
         try:
-            q = [float(v) for v in args.camera_to_imu_rotation_xyzw.split(",")]
+            # "x,y,z,w", or as a -p value "[x, y, z, w]"
+            text = args.camera_to_imu_rotation_xyzw.strip().removeprefix("[").removesuffix("]")
+            q = [float(v) for v in text.split(",")]
         except ValueError:
             raise ProcessError(
                 "--camera-to-imu-rotation-xyzw must be 4 comma-separated numbers, got "
@@ -632,7 +655,29 @@ def summary_notes(summary: Summary, opts: ProcessOptions) -> list[str]:
             "warning: no camera-IMU rotation given and none in /tf_static: used the identity; "
             + EXTRINSIC_HOWTO
         )
+    tf = summary.tf_static_rotation_xyzw
+    if summary.extrinsic_source != "tf_static" and tf is not None:
+        angle = rotation_angle_deg(summary.camera_to_imu_rotation_xyzw, tf)
+        if angle > GIVEN_VS_TF_DEG:
+            notes.append(
+                f"warning: the camera-IMU rotation given is {angle:.1f} deg from the bag's "
+                "/tf_static one (the given one was used; leave it out to use /tf_static)"
+            )
+    if summary.calibration_warning is not None:
+        notes.append(f"warning: camera-IMU calibration: {summary.calibration_warning}")
     return notes
+
+
+#: a given camera-IMU rotation farther than this from the bag's /tf_static is said, deg
+GIVEN_VS_TF_DEG = 1.0
+
+
+def rotation_angle_deg(a_xyzw: Sequence[float], b_xyzw: Sequence[float]) -> float:
+    """Angle of the rotation between two unit quaternions (x, y, z, w), degrees."""
+    a = np.asarray(a_xyzw, dtype=np.float64)
+    b = np.asarray(b_xyzw, dtype=np.float64)
+    dot = abs(float(a @ b)) / (float(np.linalg.norm(a)) * float(np.linalg.norm(b)))
+    return math.degrees(2.0 * math.acos(min(dot, 1.0)))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -187,7 +187,12 @@ def _processing_message(s: StatusInputs) -> tuple[Level, str]:
     if c.processed == 0 or c.frames_with_points == 0 or dropped or c.time_jumps:
         level = Level.WARN
     if c.processed == 0:
-        if c.images == 0:
+        if c.images == 0 and s.totals.processed:  # the camera (or a replay) stopped
+            message = (
+                f"no frames processed: no images in the last {s.span_s:.1f} s "
+                f"({s.totals.processed} processed since start)"
+            )
+        elif c.images == 0:
             message = "no frames processed: no images received"
         else:
             why = s.last_empty_reason or "waiting for IMU/camera_info"

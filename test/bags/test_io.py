@@ -247,8 +247,23 @@ def test_not_a_bag_and_missing(tmp_path: Path) -> None:
         BagReader(tmp_path / "nope")
     (tmp_path / "dir").mkdir()
     (tmp_path / "dir" / "x.txt").write_text("hello")
-    with pytest.raises(NotABagError, match=r"without metadata\.yaml"):
+    with pytest.raises(NotABagError, match=r"without metadata\.yaml$"):
         BagReader(tmp_path / "dir")
+    # a dataset folder: the error names the tool that converts it
+    (tmp_path / "euroc" / "mav0" / "cam0").mkdir(parents=True)
+    kitti = tmp_path / "kitti"
+    kitti.mkdir()
+    (kitti / "times.txt").write_text("0.0\n")
+    (kitti / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    for folder, kind in (
+        (tmp_path / "euroc", "an ASL"),
+        (tmp_path / "euroc" / "mav0", "an ASL"),
+        (kitti, "a KITTI"),
+    ):
+        with pytest.raises(NotABagError) as err:
+            BagReader(folder)
+        assert f"({kind}" in str(err.value)
+        assert str(err.value).endswith(f"convert it first with owl_import {folder} OUT_BAG)")
     (tmp_path / "file.mcap").write_bytes(b"not an mcap at all")
     with pytest.raises(NotABagError, match=r"file\.mcap"):
         BagReader(tmp_path / "file.mcap")

@@ -34,6 +34,7 @@ from msg_adapters.pointcloud import OWL_FIELDS, cloud_speed, cloud_to_array
 from msg_adapters.stamps import header_to_ns
 from owl_ros.process import ProcessOptions, Summary, process_bag
 from owl_ros.tools.live import LiveNode
+from owl_ros.topics import RESULT_TOPICS
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
@@ -390,6 +391,8 @@ def test_help_lists_parameters() -> None:
     )
     assert run.returncode == 0
     assert "camera_to_imu_rotation_xyzw" in run.stdout and "read-only" in run.stdout
+    said = " ".join(run.stdout.split("Parameters:")[0].split())  # the wrapped header
+    assert all(f" {t.name}," in said for t in RESULT_TOPICS), said
 
 
 @pytest.mark.parametrize(

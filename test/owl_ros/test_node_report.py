@@ -122,6 +122,7 @@ def test_node_start_up_line_and_silent_topic_warnings(
     (start,) = [ln for ln in lines if ln.startswith("[INFO] listening on")]
     assert "image /cam/img, camera_info /robot/camera_info, imu /robot/imu" in start
     assert "publishing /robot/owl/points, /robot/owl/heading" in start
+    assert "/robot/owl/heading_with_covariance, /robot/owl/gyro_bias, /diagnostics" in start
     assert "camera_to_imu_rotation_xyzw [0, 0, 0, 1] from parameter" in start
     assert "speed from none" in start
     silent = [ln for ln in lines if ln.startswith("[WARN] image topic /cam/img: nothing")]

@@ -208,6 +208,12 @@ def test_copy_inputs_and_explicit_rotation(bag: Path, tmp_path: Path) -> None:
     )
     summary = process_bag(bag, tmp_path / "copy", opts)
     assert summary.extrinsic_source == "option"
+    # the bag's own /tf_static is read all the same, for the summary to compare
+    tf = summary.tf_static_rotation_xyzw
+    assert (
+        tf is not None
+        and process.rotation_angle_deg(tf, bag_source(bag).camera_to_imu_xyzw) < 1e-6
+    )
     with BagReader(bag) as src, BagReader(tmp_path / "copy") as dst:
         for topic, info in src.topics.items():
             assert dst.topics[topic].count == info.count
@@ -216,6 +222,20 @@ def test_copy_inputs_and_explicit_rotation(bag: Path, tmp_path: Path) -> None:
 
 
 # ----------------------------------------------------------------------------- CLI
+
+
+@pytest.mark.parametrize(
+    "text", ["-0.5,0.5,-0.5,0.5", "[-0.5, 0.5, -0.5, 0.5]", " [-0.5,0.5,-0.5,0.5] "]
+)
+def test_the_rotation_option_takes_the_parameter_form_too(text: str) -> None:
+    """owl_import and owl_calibrate print the rotation as a parameter value ``[x, y, z, w]``:
+    pasted into --camera-to-imu-rotation-xyzw it means the same as ``x,y,z,w``."""
+    args = process.build_parser().parse_args(
+        ["in", "-o", "out", "--camera-to-imu-rotation-xyzw", text]
+    )
+    opts = process.options_from_args(args)
+    assert opts.node.engine.camera_to_imu_rotation_xyzw == (-0.5, 0.5, -0.5, 0.5)
+    assert not opts.rotation_from_tf
 
 
 def one_error_line(capsys: pytest.CaptureFixture[str]) -> str:
@@ -371,10 +391,23 @@ def calibration_warnings(path: Path, start_ns: int) -> list[tuple[float, str, di
     ],
 )
 def test_calibration_check_warns_within_two_seconds(
-    lagging_bag: Path, tmp_path: Path, args: list[str], names: str | None
+    lagging_bag: Path,
+    tmp_path: Path,
+    args: list[str],
+    names: str | None,
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
     out = tmp_path / "owl"
     assert process.main([str(lagging_bag), "-o", str(out), "-q", *args]) == 0
+    # the terminal says it too, not only the output bag's /diagnostics; and a rotation
+    # given against the bag's /tf_static is named with the angle between them
+    err = capsys.readouterr().err
+    assert ("warning: camera-IMU calibration: " in err) == (names is not None), err
+    given = "deg from the bag's /tf_static one (the given one was used"
+    assert (given in err) == (names == "rotation"), err
+    if names == "rotation":
+        angle = float(err.split("rotation given is ")[1].split(" deg")[0])
+        assert abs(angle - 120.0) < 0.1, err  # the identity against the true mount
     first_image = read(lagging_bag, ["/camera/image_raw"])["/camera/image_raw"][0]
     warnings = calibration_warnings(out, first_image[0])
     if names is None:

@@ -79,6 +79,20 @@ def test_problems_raise_the_level_and_are_named() -> None:
     assert gyro.level == Level.WARN  # images without IMU
 
 
+def test_a_camera_that_stopped_is_told_from_one_never_heard() -> None:
+    """After a replay ends the window is empty but the node did work: the message says how
+    long it has been quiet and what it processed, not that nothing ever came."""
+    quiet = Counters()
+    stopped = build_status(_inputs(counts=quiet))[1]
+    assert stopped.level == Level.WARN
+    assert (
+        stopped.message
+        == "no frames processed: no images in the last 2.0 s (580 processed since start)"
+    )
+    never = build_status(_inputs(counts=quiet, totals=Counters()))[1]
+    assert never.message == "no frames processed: no images received"
+
+
 def test_empty_window_rates_are_nan() -> None:
     inp, _, _ = build_status(_inputs(span_s=math.nan))
     assert math.isnan(float(inp.value_map()["image_rate_hz"]))

@@ -161,6 +161,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"({summary.frames / max(summary.elapsed_s, 1e-9):.1f} frames/s)",
             file=sys.stderr,
         )
+        text = ",".join(f"{v:.9f}" for v in q)
+        print(
+            f"{PROG}: the rotation is in the bag's /tf_static (owl_process takes it from there); "
+            f'for a live owl_node: -p "camera_to_imu_rotation_xyzw:=[{text}]"',
+            file=sys.stderr,
+        )
     return 0
 
 

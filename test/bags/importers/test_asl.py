@@ -122,11 +122,15 @@ def test_cli_prints_the_rotation_line(
     asl_folder: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "bag"
-    assert main([str(asl_folder.root), str(out), "--seconds", "0.5", "--every", "2", "-q"]) == 0
-    line = capsys.readouterr().out.strip()
+    assert main([str(asl_folder.root), str(out), "--seconds", "0.5", "--every", "2"]) == 0
+    said = capsys.readouterr()
+    line = said.out.strip()
     assert line.startswith("camera_to_imu_rotation_xyzw: [")
     q = [float(v) for v in line.split("[")[1].rstrip("]").split(",")]
     assert quat_xyzw_to_matrix(q) == pytest.approx(asl_folder.sim.R_bc, abs=1e-8)
+    # and ready to paste for a live node (progress and hints on stderr)
+    paste = said.err.split('-p "camera_to_imu_rotation_xyzw:=[')[1].split("]")[0]
+    assert [float(v) for v in paste.split(",")] == pytest.approx(q, abs=1e-9)
     with BagReader(out) as bag:
         assert bag.topics["/camera/image_raw"].count == 6  # 0, 0.1, ... 0.5 s
 
