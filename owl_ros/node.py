@@ -296,7 +296,7 @@ class OwlNode(Node):
         rotation = self.options.engine.camera_to_imu_rotation_xyzw
         if "camera_to_imu_rotation_xyzw" in self._parameter_overrides:
             source = "parameter"
-            if tuple(rotation) == (0.0, 0.0, 0.0, 1.0) and tf_available():
+            if tuple(abs(v) for v in rotation) == (0.0, 0.0, 0.0, 1.0) and tf_available():
                 source += f" ({node_report.IDENTITY_BLOCKS_TF})"
         elif tf_available():
             self._tf = TfExtrinsic(self)

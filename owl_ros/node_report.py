@@ -50,7 +50,7 @@ EXTRINSIC_HOWTO = (
 #: copy of config/owl.yaml listed it): a parameter always wins over TF.
 IDENTITY_BLOCKS_TF = (
     "the identity, set: TF is not looked up; leave the parameter unset (remove it from the "
-    "parameter file) to take the rotation from TF"
+    "parameter file or the -p arguments) to take the rotation from TF"
 )
 #: seconds between two WARN lines about the same problem.
 WARN_PERIOD_S = 10.0
@@ -192,7 +192,7 @@ class SilenceWatch:
                     f"{role} topic {topic}: {what} for {silent:.0f} s "
                     f"(check the topic name / remap and the publisher's QoS)"
                 )
-        if empty_reason and "no images received" not in empty_reason:  # said per topic
+        if empty_reason and "no frames processed: no images" not in empty_reason:  # per topic
             lines.append(f"frames without points: {empty_reason}")
         out = []
         for line in lines:

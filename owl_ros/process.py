@@ -130,8 +130,8 @@ class Summary:
         camera_to_imu_rotation_xyzw: the rotation used.
         tf_static_rotation_xyzw: the bag's /tf_static rotation (also when another was
             given), or None.
-        calibration_warning: the live calibration check's last verdict when it found images
-            and gyro disagreeing (one line), else None.
+        calibration_warning: the live calibration check's verdict at the end of the bag
+            when it finds images and gyro disagreeing (one line), else None.
         counts: pipeline totals (drops, skips, IMU problems...).
         reasons: reasons for frames without points, with counts.
         damage: one line when the input bag was truncated/corrupt (the readable part was
@@ -282,8 +282,7 @@ class _Run:
         self.extrinsic_source = "option" if not opts.rotation_from_tf else "default"
         self.rotation = opts.node.engine.camera_to_imu_rotation_xyzw
         self.decided = not opts.rotation_from_tf
-        self.tf_static_rotation: tuple[float, float, float, float] | None = None
-        self.tf_looked_up = False
+        self.camera_frame: str | None = None  # of the first camera_info
         self.stamps: list[int] = []
         self.headings: list[npt.NDArray[np.float64]] = []
         self.sigmas: list[float] = []
@@ -327,14 +326,18 @@ class _Run:
         msg = records_to_msg(self.pipeline.diagnostics() + extra, now_ns)
         self.writer.write(DIAGNOSTICS.bag, max(now_ns, 0), msg)
 
+    def tf_static_rotation(self) -> tuple[float, float, float, float] | None:
+        """The bag's /tf_static camera-to-IMU rotation from every transform read and the
+        frames of the IMU and camera_info messages (None without one)."""
+        if self.camera_frame is None:
+            return None
+        return tf_rotation(self.transforms, self.imu_frame, self.camera_frame)
+
     def _camera_info(self, msg: Any) -> None:
-        if not self.tf_looked_up:  # kept to compare with a given rotation
-            self.tf_looked_up = True
-            self.tf_static_rotation = tf_rotation(
-                self.transforms, self.imu_frame, msg.header.frame_id
-            )
+        if self.camera_frame is None:
+            self.camera_frame = msg.header.frame_id
         if not self.decided:  # the first camera_info decides the extrinsic from /tf_static
-            found = self.tf_static_rotation
+            found = tf_rotation(self.transforms, self.imu_frame, msg.header.frame_id)
             if found is not None:
                 self.rotation, self.extrinsic_source = found, "tf_static"
                 self.pipeline.reconfigure(
@@ -361,8 +364,11 @@ class _Run:
         the pipeline's ready outputs and, every diagnostics period, its diagnostics."""
         now = self.now_ns = raw.log_time_ns
         role = self.roles.get(raw.topic)
-        if raw.topic == TF_STATIC and not self.tf_looked_up:
-            self.transforms.extend(self.bag.deserialize(raw).transforms)
+        if raw.topic == TF_STATIC:  # all of them: the summary compares a given rotation
+            try:
+                self.transforms.extend(self.bag.deserialize(raw).transforms)
+            except Exception:  # a damaged message: skip it, count it
+                self.undecodable[raw.topic] += 1
         elif role is not None:
             self._dispatch(raw, role)
         if raw.topic in self.copy:
@@ -464,7 +470,7 @@ def process_bag(
         heading_sigma_rad=np.asarray(run.sigmas, dtype=np.float64),
         extrinsic_source=run.extrinsic_source,
         camera_to_imu_rotation_xyzw=tuple(float(v) for v in run.rotation),  # type: ignore[arg-type]
-        tf_static_rotation_xyzw=run.tf_static_rotation,
+        tf_static_rotation_xyzw=run.tf_static_rotation(),
         calibration_warning=(
             verdict.message
             if (verdict := run.pipeline.calibration_verdict) is not None and verdict.disagrees

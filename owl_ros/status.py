@@ -187,10 +187,10 @@ def _processing_message(s: StatusInputs) -> tuple[Level, str]:
     if c.processed == 0 or c.frames_with_points == 0 or dropped or c.time_jumps:
         level = Level.WARN
     if c.processed == 0:
-        if c.images == 0 and s.totals.processed:  # the camera (or a replay) stopped
+        if c.images == 0 and s.totals.images:  # the camera (or a replay) stopped
             message = (
-                f"no frames processed: no images in the last {s.span_s:.1f} s "
-                f"({s.totals.processed} processed since start)"
+                f"no frames processed: no images in this period ({s.totals.images} received, "
+                f"{s.totals.processed} processed since start)"
             )
         elif c.images == 0:
             message = "no frames processed: no images received"

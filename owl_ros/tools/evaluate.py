@@ -624,8 +624,8 @@ def iter_truth(path: str | Path) -> Iterator[Truth]:
             msg = f"truth bag {path} has no {TRUTH_TOPICS['twist']} (has: "
             raise EvalError(
                 msg + ", ".join(sorted(topics)) + "): no ground truth to score against "
-                "(owl_import writes it from a dataset's poses: EuRoC "
-                "state_groundtruth_estimate0, TUM-VI mocap0, KITTI poses)"
+                "(owl_make_bag renders it; owl_import writes it from a dataset's poses: "
+                "EuRoC state_groundtruth_estimate0, TUM-VI mocap0, KITTI poses)"
             )
         has_range = TRUTH_TOPICS["range"] in topics
         no_range = None if has_range else _no_range_image(bag)

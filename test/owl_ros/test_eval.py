@@ -187,7 +187,7 @@ def test_cli_errors_are_one_line(truth_bag, tmp_path, capsys):
     assert evaluate.main([str(result), "--truth", str(result)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "/ground_truth/twist" in err
-    assert "no ground truth to score against (owl_import writes it from" in err
+    assert "no ground truth to score against (owl_make_bag renders it; owl_import" in err
     with pytest.raises(SystemExit) as exc:
         evaluate.main(["--help"])
     assert exc.value.code == 0

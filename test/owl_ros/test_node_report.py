@@ -60,6 +60,11 @@ def test_silence_watch_names_the_topic_and_throttles() -> None:
     assert watch.check(14.0, {"image": 1, "imu": 6}, "no points: no gyro samples") == [
         "frames without points: no points: no gyro samples"
     ]
+    # a camera that stopped is said per topic ("nothing since message N"), not again as
+    # frames without points
+    stopped = "no frames processed: no images in this period (1 received, 0 processed since start)"
+    lines = watch.check(30.0, {"image": 1, "imu": 6}, stopped)
+    assert lines and not any(line.startswith("frames without points") for line in lines)
 
 
 def _node(

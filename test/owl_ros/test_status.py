@@ -85,12 +85,14 @@ def test_a_camera_that_stopped_is_told_from_one_never_heard() -> None:
     quiet = Counters()
     stopped = build_status(_inputs(counts=quiet))[1]
     assert stopped.level == Level.WARN
-    assert (
-        stopped.message
-        == "no frames processed: no images in the last 2.0 s (580 processed since start)"
+    assert stopped.message == (
+        "no frames processed: no images in this period (600 received, 580 processed since start)"
     )
     never = build_status(_inputs(counts=quiet, totals=Counters()))[1]
     assert never.message == "no frames processed: no images received"
+    # images that came but were never processed (no IMU or camera_info yet) were heard
+    unheard = build_status(_inputs(counts=quiet, totals=Counters(images=5)))[1]
+    assert unheard.message.startswith("no frames processed: no images in this period (5 rec")
 
 
 def test_empty_window_rates_are_nan() -> None:
