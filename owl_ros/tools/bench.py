@@ -69,6 +69,7 @@ from owl_core.camera import CameraModel
 from owl_core.engine import EngineOptions, OwlEngine
 from owl_core.errors import OwlError
 from owl_core.types import FrameResult, GyroSamples, ImageFrame
+from owl_ros import params
 from owl_ros.heap import keep_freed_memory
 from owl_ros.tools.errors import BenchError, EvalError, ToolError
 from owl_ros.tools.evaluate import (
@@ -160,6 +161,40 @@ class Profile:
     #: render seeds (image and IMU noise) each synthetic case runs with; its figures are
     #: over the frames of all of them
     seeds: tuple[int, ...] = (0,)
+    #: node parameters of the engine (``owl_bench -p NAME:=VALUE``) that OWL runs with
+    #: instead of their defaults; the tracks, and so the baselines, follow them too
+    engine_params: tuple[tuple[str, Any], ...] = ()
+
+
+#: node parameters the bench sets itself: from --features, or from each case's sensors
+BENCH_SETS = {
+    "max_features": "give it as --features",
+    "camera_to_imu_rotation_xyzw": "each case has its own",
+    "imu_time_offset": "each case has its own",
+    "rolling_shutter_readout_s": "each case has its own",
+}
+
+
+def parse_engine_params(items: Sequence[str]) -> tuple[tuple[str, Any], ...]:
+    """``NAME:=VALUE`` items (node parameters that set an engine option) -> (name, value)
+    pairs, validated as the node validates them; BenchError naming the item otherwise."""
+    out: dict[str, Any] = {}
+    for item in items:
+        name, sep, text = item.partition(":=")
+        name = name.strip()
+        if not sep or not name:
+            raise BenchError(f"-p expects NAME:=VALUE, got {item!r}")
+        if name in BENCH_SETS:
+            raise BenchError(f"-p {item}: the bench sets {name} ({BENCH_SETS[name]})")
+        try:
+            value = params.parse_value(name, text)
+            params.build_options({name: value})
+        except params.ParameterError as err:
+            raise BenchError(f"-p {item}: {'; '.join(err.lines)}") from None
+        if next(q for q in params.PARAMS if q.name == name).engine is None:
+            raise BenchError(f"-p {item}: {name} is a node setting, not one of the engine")
+        out[name] = value
+    return tuple(out.items())
 
 
 #: Duration of the ``car`` cases, s (its speed and yaw profile repeats every 8 s).
@@ -512,9 +547,13 @@ def run_case(
 
 def _source_engine(src: Source, profile: Profile, readout_s: float) -> OwlEngine:
     """OWL for a source: its extrinsic, offset and gyro, the profile's features."""
+    base = EngineOptions()
+    if profile.engine_params:
+        base = params.build_options(dict(profile.engine_params)).engine
     engine = OwlEngine(
         src.camera,
-        EngineOptions(
+        replace(
+            base,
             camera_to_imu_rotation_xyzw=src.camera_to_imu_xyzw,
             imu_time_offset_s=src.imu_time_offset_s,
             max_features=profile.features,
@@ -842,6 +881,7 @@ def run_bench(
         "features": profile.features,
         "seconds_per_case": profile.seconds,
         "seeds": list(profile.seeds),
+        "engine_params": dict(profile.engine_params),
         "gaps": list(GAPS),
         "clock": profile.clock,
         "features_per_frame": float(np.mean([r.tracks_per_frame for r in runs])),
@@ -943,7 +983,9 @@ def _yes(x: Any) -> str:
 def report_lines(doc: dict[str, Any]) -> list[str]:
     """The benchmark as text tables."""
     lines = [
-        f"{PROG} ({doc['profile']}): {doc['image_size']}, {doc['features']} features requested "
+        f"{PROG} ({doc['profile']}): {doc['image_size']}, {doc['features']} features requested"
+        + "".join(f", {k}={v}" for k, v in doc.get("engine_params", {}).items())
+        + " "
         f"({doc['features_per_frame']:.0f} tracked/frame), {doc['seconds_per_case']:g} s per "
         f"synthetic case{_seeds_text(doc)}, baselines at frame gaps "
         f"{', '.join(map(str, doc['gaps']))}, one "
@@ -1202,6 +1244,11 @@ def build_parser() -> argparse.ArgumentParser:
         "IMU noise) and score every method over the frames of all of them: one seed's "
         "heading medians move by 5 to 40 %% from seed to seed (default 1)",
     )
+    p.add_argument(
+        "-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
+        help="an engine setting of owl_node (e.g. tracker_lk_deformation_correction:=false) "
+        "that OWL runs with; the tracks, and so the baselines, follow it; repeatable",
+    )  # fmt: skip
     p.add_argument("--no-cache", action="store_true", help="render without reading/writing")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     return p
@@ -1268,6 +1315,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.seeds < 1:
             raise BenchError(f"--seeds must be >= 1, got {args.seeds}")
         profile = replace(profile, seeds=tuple(range(args.seeds)))
+        profile = replace(profile, engine_params=parse_engine_params(args.param))
         if args.features is not None:
             if args.features <= 0:
                 raise BenchError(f"--features must be positive, got {args.features}")

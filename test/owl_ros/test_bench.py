@@ -139,6 +139,35 @@ def test_cli_json_and_errors(capsys, tmp_path):
     assert err.count("\n") == 1 and "--seeds" in err
 
 
+def test_an_engine_setting_runs_owl_and_its_tracks_with_it(capsys, tmp_path):
+    """-p NAME:=VALUE: what a setting of the node costs, measured on the bench's cases."""
+    argv = ["--quick", "--json", "--cases", "cube", "--seconds", "0.3", "--quiet"]
+    argv += ["--features", "120", "--cache-dir", str(tmp_path)]
+    assert bench.main(argv) == 0
+    default = json.loads(capsys.readouterr().out)
+    off = ["-p", "tracker_lk_deformation_correction:=false"]
+    assert bench.main([*argv, *off]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert default["engine_params"] == {}
+    assert doc["engine_params"] == {"tracker_lk_deformation_correction": False}
+    # the same frames, other tracks: every method's figures move (the baselines share them)
+    for name in ("owl", "cv-5pt@1"):
+        a = default["cases"][0]["methods"][name]["heading_deg_median"]
+        b = doc["cases"][0]["methods"][name]["heading_deg_median"]
+        assert a != b, name
+    for item, says in (
+        ("max_features:=500", "the bench sets max_features (give it as --features)"),
+        ("imu_time_offset:=0.01", "the bench sets imu_time_offset (each case has its own)"),
+        ("queue_size:=3", "queue_size is a node setting, not one of the engine"),
+        ("tracker_lk_deformation_corection:=false", "did you mean"),
+        ("pixel_noise_px:=-1", "pixel_noise_px"),
+        ("pixel_noise_px", "-p expects NAME:=VALUE"),
+    ):
+        assert bench.main(["--quick", "--quiet", "-p", item]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith("owl_bench: error: ") and says in err, err
+
+
 def test_best_baseline_is_the_lowest_heading_median_and_owl_is_judged_against_every_gap():
     def row(h50, h90, r50, r90, paired=None):
         return {
