@@ -434,7 +434,7 @@ PARAMS: tuple[Param, ...] = (
         "int",
         _T.detect_level,
         "pyramid level the corner search runs on (0: the image; 1: half size, a quarter of "
-        "the detection CPU; README 'Cost per frame' says what it costs)",
+        "the detection CPU; docs/performance.md says what it costs)",
         low=0,
         high=3,
         engine="tracker.detect_level",

@@ -209,8 +209,8 @@ def _processing_message(s: StatusInputs) -> tuple[Level, str]:
         if engine_s > 0.9 * interval_s:  # not a burst: the engine is slower than the camera
             message += (
                 f": the engine takes {1e3 * engine_s:.0f} ms a frame, images arrive every "
-                f"{1e3 * interval_s:.0f} ms (fewer max_features, or "
-                "tracker_lk_deformation_correction false, keep up)"
+                f"{1e3 * interval_s:.0f} ms (fewer max_features keep up; the README's "
+                "'Cost per frame' says what each setting costs)"
             )
     if c.time_jumps:
         message += f"; time jump: {s.last_jump}"

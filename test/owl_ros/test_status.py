@@ -50,8 +50,8 @@ def test_an_engine_slower_than_the_camera_is_named_with_what_helps() -> None:
     assert proc.level == Level.WARN
     assert proc.message.endswith(
         "20 frames dropped (queue full, newest wins): the engine takes 45 ms a frame, images "
-        "arrive every 33 ms (fewer max_features, or tracker_lk_deformation_correction false, "
-        "keep up)"
+        "arrive every 33 ms (fewer max_features keep up; the README's 'Cost per frame' says "
+        "what each setting costs)"
     )
     # a burst: the same drops with an engine well inside the interval say only the drops
     burst = _inputs(counts=replace(counts, dropped_queue_full=20), process_s=[0.01, 0.012])
