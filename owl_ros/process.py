@@ -47,7 +47,7 @@ from bags.io import BagReader, BagWriter, RawMessage, serialize
 from msg_adapters.diagnostics import records_to_msg
 from msg_adapters.msgtypes import message_class
 from msg_adapters.stamps import header_to_ns
-from owl_core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from owl_core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, so3_log
 from owl_ros.dense_outputs import DenseWriter
 from owl_ros.heap import keep_freed_memory
 from owl_ros.node import heading_marker
@@ -679,11 +679,11 @@ GIVEN_VS_TF_DEG = 1.0
 
 
 def rotation_angle_deg(a_xyzw: Sequence[float], b_xyzw: Sequence[float]) -> float:
-    """Angle of the rotation between two unit quaternions (x, y, z, w), degrees."""
-    a = np.asarray(a_xyzw, dtype=np.float64)
-    b = np.asarray(b_xyzw, dtype=np.float64)
-    dot = abs(float(a @ b)) / (float(np.linalg.norm(a)) * float(np.linalg.norm(b)))
-    return math.degrees(2.0 * math.acos(min(dot, 1.0)))
+    """Angle of the rotation between two quaternions (x, y, z, w), degrees (as
+    owl_calibrate compares its estimate with /tf_static)."""
+    ra = quat_xyzw_to_matrix(np.asarray(a_xyzw, dtype=np.float64))
+    rb = quat_xyzw_to_matrix(np.asarray(b_xyzw, dtype=np.float64))
+    return math.degrees(float(np.linalg.norm(so3_log(ra @ rb.T))))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
