@@ -662,7 +662,7 @@ def summary_notes(summary: Summary, opts: ProcessOptions) -> list[str]:
             + EXTRINSIC_HOWTO
         )
     tf = summary.tf_static_rotation_xyzw
-    if summary.extrinsic_source != "tf_static" and tf is not None:
+    if summary.extrinsic_source == "option" and tf is not None:
         angle = rotation_angle_deg(summary.camera_to_imu_rotation_xyzw, tf)
         if angle > GIVEN_VS_TF_DEG:
             notes.append(
