@@ -822,6 +822,23 @@ def parse_value(name: str, text: str) -> Any:
     return value
 
 
+def parse_assignment(item: str) -> tuple[str, Any]:
+    """One ``-p NAME:=VALUE`` item of a tool's command line (``NAME=VALUE`` too) -> (name,
+    value of the parameter's type); ParameterError naming the item or the value."""
+    name, sep, text = item.partition(":=")
+    if not sep:
+        name, sep, text = item.partition("=")
+    name = name.strip()
+    if not sep or not name:
+        raise ParameterError([f"-p expects NAME:=VALUE, got {item!r}"])
+    return name, parse_value(name, text)
+
+
+def find(name: str) -> Param | None:
+    """The table's row of parameter ``name`` (None for an unknown name)."""
+    return _BY_NAME.get(name)
+
+
 def descriptor(p: Param) -> Any:
     """rcl_interfaces/ParameterDescriptor of ``p`` (ranges, read_only, constraints text)."""
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor

@@ -57,7 +57,7 @@ from owl_ros.params import (
     ParameterError,
     build_options,
     defaults,
-    parse_value,
+    parse_assignment,
     to_values,
 )
 from owl_ros.pipeline import Output, Pipeline
@@ -591,12 +591,7 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
             defaults()["camera_to_imu_rotation_xyzw"]
         )
     for item in args.param:
-        name, sep, text = item.partition(":=")
-        if not sep:
-            name, sep, text = item.partition("=")
-        if not sep or not name:
-            raise ProcessError(f"-p expects NAME:=VALUE, got {item!r}")
-        values[name] = parse_value(name, text)
+        name, values[name] = parse_assignment(item)
         rotation_given |= name == "camera_to_imu_rotation_xyzw"
     if args.camera_to_imu_rotation_xyzw is not None:
         try:

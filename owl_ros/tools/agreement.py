@@ -207,12 +207,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("-p", "--param", action="append", default=[], metavar="NAME:=VALUE")
     args = p.parse_args(argv)
     try:
-        from owl_ros.params import parse_value
+        from owl_ros.params import parse_assignment
 
-        params = {}
-        for item in args.param:
-            name, _, text = item.partition(":=")
-            params[name] = parse_value(name, text)
+        params = dict(parse_assignment(item) for item in args.param)
         out = heading_agreement(args.bag, tuple(args.gap or (1, 2, 4)), params=params)
     except (BagError, StopIteration, ValueError) as err:
         print(f"{PROG}: error: {' '.join(str(err).split()) or 'empty topic'}", file=sys.stderr)

@@ -310,17 +310,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``owl_batch``; returns 0, 1 when a bag failed, 2 on bad input."""
-    from owl_ros.params import ParameterError, build_options, parse_value
+    from owl_ros.params import ParameterError, build_options, parse_assignment
 
     args = build_parser().parse_args(argv)
     try:
         bags = find_bags(args.inputs)
         params: dict[str, Any] = {}
         for item in args.param:
-            name, sep, text = item.partition(":=")
-            if not sep or not name:
-                raise BatchError(f"-p expects NAME:=VALUE, got {item!r}")
-            params[name] = parse_value(name, text)
+            name, params[name] = parse_assignment(item)
         build_options(params)  # refuse bad values before starting Ray
         out_dir = Path(args.out_dir)
         clash = [b.name for b in bags if (out_dir / b.name).exists()]

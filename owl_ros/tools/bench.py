@@ -180,18 +180,15 @@ def parse_engine_params(items: Sequence[str]) -> tuple[tuple[str, Any], ...]:
     pairs, validated as the node validates them; BenchError naming the item otherwise."""
     out: dict[str, Any] = {}
     for item in items:
-        name, sep, text = item.partition(":=")
-        name = name.strip()
-        if not sep or not name:
-            raise BenchError(f"-p expects NAME:=VALUE, got {item!r}")
-        if name in BENCH_SETS:
-            raise BenchError(f"-p {item}: the bench sets {name} ({BENCH_SETS[name]})")
         try:
-            value = params.parse_value(name, text)
+            name, value = params.parse_assignment(item)
             params.build_options({name: value})
         except params.ParameterError as err:
-            raise BenchError(f"-p {item}: {'; '.join(err.lines)}") from None
-        if next(q for q in params.PARAMS if q.name == name).engine is None:
+            raise BenchError("; ".join(err.lines)) from None
+        if name in BENCH_SETS:
+            raise BenchError(f"-p {item}: the bench sets {name} ({BENCH_SETS[name]})")
+        row = params.find(name)
+        if row is None or row.engine is None:
             raise BenchError(f"-p {item}: {name} is a node setting, not one of the engine")
         out[name] = value
     return tuple(out.items())
@@ -547,13 +544,10 @@ def run_case(
 
 def _source_engine(src: Source, profile: Profile, readout_s: float) -> OwlEngine:
     """OWL for a source: its extrinsic, offset and gyro, the profile's features."""
-    base = EngineOptions()
-    if profile.engine_params:
-        base = params.build_options(dict(profile.engine_params)).engine
     engine = OwlEngine(
         src.camera,
         replace(
-            base,
+            params.build_options(dict(profile.engine_params)).engine,  # the node's defaults
             camera_to_imu_rotation_xyzw=src.camera_to_imu_xyzw,
             imu_time_offset_s=src.imu_time_offset_s,
             max_features=profile.features,

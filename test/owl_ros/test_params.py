@@ -192,3 +192,16 @@ def test_process_help() -> None:
     with pytest.raises(SystemExit) as info:
         process.main(["--help"])
     assert info.value.code == 0
+
+
+def test_one_parser_for_every_tool_s_dash_p() -> None:
+    """owl_process, owl_bench, owl_batch and the agreement tool read -p items alike."""
+    assert P.parse_assignment("max_features:=400") == ("max_features", 400)
+    assert P.parse_assignment("pixel_noise_px=1") == ("pixel_noise_px", 1.0)
+    assert P.parse_assignment(" require_gyro := false") == ("require_gyro", False)
+    for item in ("max_features", ":=400", ""):
+        with pytest.raises(P.ParameterError, match="-p expects NAME:=VALUE, got"):
+            P.parse_assignment(item)
+    with pytest.raises(P.ParameterError, match="did you mean max_features"):
+        P.parse_assignment("max_feature:=400")
+    assert P.find("max_features") is not None and P.find("nope") is None
