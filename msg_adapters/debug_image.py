@@ -58,9 +58,9 @@ def draw_debug(
 
     Each point is a 5x5 dot coloured by r/|t| (red near, blue far, on a log scale between
     0.5 and 20 s); suspected moving points are magenta with a white centre; the heading
-    (focus of expansion) is a green cross in a circle when it lies in front of the camera;
-    a colour legend sits in the bottom-left corner. Drawing is vectorised (no loop over
-    points).
+    (focus of expansion) is a green cross in a circle when it lies in front of the camera
+    and inside the picture; a colour legend sits in the bottom-left corner. Drawing is
+    vectorised (no loop over points).
 
     Args:
         grey: (H, W) uint8 image the engine tracked on.
@@ -82,7 +82,9 @@ def draw_debug(
         img[np.clip(uv[moving, 1], 0, h - 1), np.clip(uv[moving, 0], 0, w - 1)] = (255, 255, 255)
     if result.heading is not None and camera is not None and result.heading[2] > 0:
         foe = camera.bearing_to_pixel(np.asarray(result.heading, dtype=np.float64)[None])[0]
-        if np.all(np.isfinite(foe)):
+        # only where the picture shows it (a heading near 90 deg off the axis projects
+        # beyond what cv2 can draw: its coordinates overflow int32)
+        if np.all(np.isfinite(foe)) and 0 <= foe[0] < w and 0 <= foe[1] < h:
             c = (round(float(foe[0])), round(float(foe[1])))
             size = max(6, min(h, w) // 20)
             cv2.circle(img, c, size, (0, 255, 0), 2)

@@ -194,6 +194,9 @@ class SilenceWatch:
                 )
         if empty_reason and "no frames processed: no images" not in empty_reason:  # per topic
             lines.append(f"frames without points: {empty_reason}")
+        # forget what was said a period ago (it may be said again): the lines carry
+        # changing values, so keeping every key would grow without bound
+        self._said = {k: t for k, t in self._said.items() if now_s - t < self.period_s}
         out = []
         for line in lines:
             key = line.split(" for ")[0] if " for " in line else line

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from msg_adapters.debug_image import (
@@ -74,3 +76,16 @@ def test_draw_debug_dots_coloured_by_range_moving_magenta_heading_green() -> Non
     assert (picture[5:30, 150:170] == 90).all()  # the rest is the grey image
     grey_only = draw_debug(grey, result, None)  # no camera: no heading drawn
     assert tuple(grey_only[120, 160]) == (90, 90, 90)
+
+
+def test_heading_outside_the_picture_is_not_drawn() -> None:
+    """A heading in front of the camera but nearly at 90 deg projects far outside the image
+    (beyond int32 for a distortion-free camera): nothing is drawn and nothing raises."""
+    k = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    camera = CameraModel(320, 240, k, np.zeros(0), "none")  # no validity limit
+    grey = np.full((240, 320), 90, dtype=np.uint8)
+    result = _result(np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.uint8))
+    for heading in ([1.0, 0.0, 1e-9], [0.0, -1.0, 1e-3], [1.0, 0.0, 0.6]):
+        h = np.array(heading) / np.linalg.norm(heading)
+        picture = draw_debug(grey, dataclasses.replace(result, heading=h), camera)
+        assert (picture[:180] == 90).all()  # only the legend was drawn

@@ -67,6 +67,16 @@ def test_silence_watch_names_the_topic_and_throttles() -> None:
     assert lines and not any(line.startswith("frames without points") for line in lines)
 
 
+def test_silence_watch_memory_stays_bounded() -> None:
+    """Reasons carry changing values (a stamp, a count): what was said a period ago is
+    forgotten, so a node running for days keeps a handful of entries, not one per line."""
+    watch = SilenceWatch({"image": "/cam/img"}, after_s=3.0, period_s=10.0)
+    for k in range(200):
+        reason = f"no points: image stamp {k} ns repeated"
+        assert watch.check(10.0 * k, {"image": k}, reason) == [f"frames without points: {reason}"]
+    assert len(watch._said) <= 2
+
+
 def _node(
     args: list[str], env: dict[str, str], seconds: float, until: str = "", after_s: float = 0.0
 ) -> tuple[int, str]:
