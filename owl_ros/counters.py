@@ -21,6 +21,7 @@ class Skip(StrEnum):
     NO_CAMERA_INFO = "skipped_no_camera_info"
     BAD_IMAGE = "skipped_bad_image"
     DUPLICATE_STAMP = "skipped_duplicate_stamp"
+    OUT_OF_ORDER = "skipped_out_of_order"
     ENGINE_ERROR = "skipped_engine_error"
 
 
@@ -39,8 +40,12 @@ class Counters:
         dropped_queue_full: frames dropped from the full queue (newest wins).
         images_missing: images missing between the received ones' stamps, lost before
             the node (``owl_ros.scheduler.StampGaps``).
+        backlog_dropped: IMU, camera_info and speed messages dropped from the node's full
+            input backlog (its worker stalled for longer than the backlog holds).
         skipped_no_camera_info, skipped_bad_image, skipped_duplicate_stamp,
-            skipped_engine_error: frames taken from the queue but not processed.
+            skipped_out_of_order, skipped_engine_error: frames taken from the queue but
+            not processed (an out-of-order stamp: before the last processed frame's by
+            at most ``max_frame_gap_s``).
         processed, frames_with_points, frames_metric, headings: frames the engine
             processed; of those, with points, with metric points, with a heading.
         frames_imu_not_covered: processed frames whose interval the IMU did not cover.
@@ -67,9 +72,11 @@ class Counters:
     speed_too_low: int = 0
     dropped_queue_full: int = 0
     images_missing: int = 0
+    backlog_dropped: int = 0
     skipped_no_camera_info: int = 0
     skipped_bad_image: int = 0
     skipped_duplicate_stamp: int = 0
+    skipped_out_of_order: int = 0
     skipped_engine_error: int = 0
     processed: int = 0
     frames_with_points: int = 0

@@ -52,3 +52,11 @@ class TfExtrinsic:
             return None
         q = tf.transform.rotation
         return (float(q.x), float(q.y), float(q.z), float(q.w))
+
+    def close(self) -> None:
+        """Stop listening: ``/tf`` and ``/tf_static`` are no longer received (on a robot
+        ``/tf`` runs at hundreds of messages a second, each deserialised on the node's
+        executor thread for nothing once the rotation is known)."""
+        unregister = getattr(self._listener, "unregister", None)
+        if unregister is not None:
+            unregister()

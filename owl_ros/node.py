@@ -30,7 +30,7 @@ import sys
 import textwrap
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from enum import StrEnum
 from typing import Any
 
@@ -57,7 +57,14 @@ from owl_ros import node_report
 from owl_ros.dense_outputs import DensePublishers
 from owl_ros.extrinsic_tf import TfExtrinsic, tf_available
 from owl_ros.heap import keep_freed_memory
-from owl_ros.params import PARAMS, ParameterError, build_options, descriptor, validate
+from owl_ros.params import (
+    PARAMS,
+    NodeOptions,
+    ParameterError,
+    build_options,
+    descriptor,
+    validate,
+)
 from owl_ros.pipeline import Output, Pipeline
 from owl_ros.roles import Role
 from owl_ros.topics import GYRO_BIAS, RESULT_TOPICS
@@ -95,24 +102,35 @@ class Inbox:
     """Thread-safe, ordered hand-over of the non-image inputs from the callbacks to the
     worker (images go to the pipeline's frame queue).
 
-    IMU, camera_info, speed messages and control entries wait in one deque bounded
-    generously (``capacity``; the oldest is dropped when full, counted in ``dropped``) so
-    memory stays bounded even if the worker stalls. ``drain`` hands them over in the order
-    they were put; ``wait`` lets the worker sleep until something arrives.
+    IMU, camera_info and speed messages wait in one deque bounded generously
+    (``capacity``; the oldest is dropped when full, counted in ``dropped``) so memory stays
+    bounded even if the worker stalls. Control entries (option changes, QoS events) are
+    rare and never dropped: a parameter change that was acknowledged is always applied.
+    ``drain`` hands everything over in the order it was put; ``wait`` lets the worker
+    sleep until something arrives.
     """
 
     def __init__(self, capacity: int = 20000) -> None:
         self._lock = threading.Lock()
         self._event = threading.Event()
-        self._items: collections.deque[tuple[Kind, Any, int]] = collections.deque(maxlen=capacity)
+        self._items: collections.deque[tuple[int, Kind, Any, int]] = collections.deque(
+            maxlen=capacity
+        )
+        self._controls: list[tuple[int, Kind, Any, int]] = []
+        self._seq = 0
         self.dropped = 0
 
     def put(self, kind: Kind, msg: Any, arrival_ns: int) -> None:
-        """Store one entry (the oldest gives way when full)."""
+        """Store one entry (the oldest message gives way when full; controls never do)."""
         with self._lock:
-            if len(self._items) == self._items.maxlen:
-                self.dropped += 1
-            self._items.append((kind, msg, arrival_ns))
+            self._seq += 1
+            entry = (self._seq, kind, msg, arrival_ns)
+            if isinstance(kind, Control):
+                self._controls.append(entry)
+            else:
+                if len(self._items) == self._items.maxlen:
+                    self.dropped += 1
+                self._items.append(entry)
         self._event.set()
 
     def wait(self, timeout_s: float) -> None:
@@ -129,27 +147,48 @@ class Inbox:
         with self._lock:
             items = list(self._items)
             self._items.clear()
-        return items
+            if self._controls:
+                items = sorted(items + self._controls, key=lambda e: e[0])
+                self._controls = []
+        return [(kind, msg, arrival) for _, kind, msg, arrival in items]
 
 
-def feed(pipeline: Pipeline, entries: Sequence[tuple[Kind, Any, int]]) -> list[Output]:
+def feed(
+    pipeline: Pipeline,
+    entries: Sequence[tuple[Kind, Any, int]],
+    on_error: Callable[[Kind, Exception], None] | None = None,
+    on_options: Callable[[NodeOptions], None] | None = None,
+) -> list[Output]:
     """Hand inbox entries to the pipeline in order (runs of IMU messages in one batch);
-    returns the outputs of frames processed out of turn (before an IMU time jump)."""
+    returns the outputs of frames processed out of turn (before an IMU time jump).
+
+    An entry that raises is reported to ``on_error`` (re-raised without one) and the
+    entries after it are still handed over: a bad message costs only itself, never the
+    IMU samples, calibration or option changes drained with it. ``on_options`` also
+    receives every option change (the dense stage's settings follow them).
+    """
     outs: list[Output] = []
     imus: list[Any] = []
     for i, (kind, msg, arrival_ns) in enumerate(entries):
-        if kind is Role.IMU:
-            imus.append(msg)
-            if i + 1 < len(entries) and entries[i + 1][0] is Role.IMU:
-                continue
-            outs += pipeline.add_imus(imus, arrival_ns)
-            imus = []
-        elif kind is Control.OPTIONS:
-            pipeline.reconfigure(msg)
-        elif kind is Control.QOS:
-            pipeline.note_qos_event(msg)
-        else:
-            outs += pipeline.add(kind, msg, arrival_ns)
+        try:
+            if kind is Role.IMU:
+                imus.append(msg)
+                if i + 1 < len(entries) and entries[i + 1][0] is Role.IMU:
+                    continue
+                batch, imus = imus, []
+                outs += pipeline.add_imus(batch, arrival_ns)
+            elif kind is Control.OPTIONS:
+                pipeline.reconfigure(msg)
+                if on_options is not None:
+                    on_options(msg)
+            elif kind is Control.QOS:
+                pipeline.note_qos_event(msg)
+            else:
+                outs += pipeline.add(kind, msg, arrival_ns)
+        except Exception as err:
+            if on_error is None:
+                raise
+            on_error(kind, err)
     return outs
 
 
@@ -213,6 +252,7 @@ class OwlNode(Node):
         self._values = values
         self._lock = threading.Lock()
         self._inbox = Inbox()
+        self._backlog_dropped = 0  # the inbox's drops already counted
         self._pipeline = Pipeline(self.options, clock=time.monotonic_ns, live=True)
         self._calibration_logged = False
         self._stop = threading.Event()
@@ -320,9 +360,10 @@ class OwlNode(Node):
     def _check_tf(self) -> None:
         """Once the image's and the IMU's frame_id are known, take the rotation from TF."""
         cam, imu = self._frames.get(Role.IMAGE), self._frames.get(Role.IMU)
-        if self._tf is None or not cam or not imu:
+        tf = self._tf  # the parameter callback may drop it meanwhile
+        if tf is None or not cam or not imu:
             return
-        found = self._tf.lookup(cam, imu)
+        found = tf.lookup(cam, imu)
         if found is None:
             if time.monotonic() > self._tf_deadline:
                 self._tf_deadline = time.monotonic() + 1e9  # once
@@ -334,16 +375,27 @@ class OwlNode(Node):
         with self._lock:
             if self._tf is None:  # the parameter was set meanwhile: it wins
                 return
-            self._tf = None
+            self._drop_tf()
             # into the parameter values too, so that a later parameter change keeps it
             values = {**self._values, "camera_to_imu_rotation_xyzw": list(found)}
             options = build_options(values)
             self._values = values
             self.options = options
-        self._inbox.put(Control.OPTIONS, options, time.monotonic_ns())
+            # queued under the lock: option sets reach the worker in the order they were
+            # built, so neither this rotation nor a parameter change overtakes the other
+            self._inbox.put(Control.OPTIONS, options, time.monotonic_ns())
         self.get_logger().info(
             f"camera_to_imu_rotation_xyzw {list(found)} from TF ({imu} -> {cam})"
         )
+
+    def _drop_tf(self) -> None:
+        """No more TF lookups (the rotation is known); unsubscribe from TF. Under the lock."""
+        tf, self._tf = self._tf, None
+        if tf is not None:
+            try:
+                tf.close()
+            except Exception as err:  # only costs the TF messages' deserialisation
+                self.get_logger().warning(f"TF listener not closed: {err}")
 
     def _subscribe(self, kind: Any, topic: str, callback: Any, qos: QoSProfile) -> None:
         events = SubscriptionEventCallbacks(
@@ -389,7 +441,8 @@ class OwlNode(Node):
     # ------------------------------------------------------------------ callbacks
 
     def _on_image(self, msg: Any) -> None:
-        self._frames.setdefault(Role.IMAGE, msg.header.frame_id)
+        if msg.header.frame_id:  # the first non-empty one (TF needs a name)
+            self._frames.setdefault(Role.IMAGE, msg.header.frame_id)
         self._pipeline.add_image(msg, time.monotonic_ns())  # thread-safe: only queues
         self._inbox.wake()
 
@@ -397,7 +450,8 @@ class OwlNode(Node):
         self._inbox.put(Role.CAMERA_INFO, msg, time.monotonic_ns())
 
     def _on_imu(self, msg: Any) -> None:
-        self._frames.setdefault(Role.IMU, msg.header.frame_id)
+        if msg.header.frame_id:
+            self._frames.setdefault(Role.IMU, msg.header.frame_id)
         self._inbox.put(Role.IMU, msg, time.monotonic_ns())
 
     def _on_speed(self, msg: Any) -> None:
@@ -420,8 +474,8 @@ class OwlNode(Node):
             self._values = merged
             self.options = options
             if "camera_to_imu_rotation_xyzw" in known:
-                self._tf = None  # the parameter overrides TF
-        self._inbox.put(Control.OPTIONS, options, time.monotonic_ns())
+                self._drop_tf()  # the parameter overrides TF
+            self._inbox.put(Control.OPTIONS, options, time.monotonic_ns())
         return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------ worker
@@ -441,25 +495,52 @@ class OwlNode(Node):
                 self._inbox.wait(min(timeout, max((next_diag - now) * 1e-9, 0.001)))
             if self._stop.is_set():
                 break
+            busy = False  # stays so if the step raises
             try:
-                busy = False  # stays so if the step raises
                 busy = self._step()
-                now = time.monotonic_ns()
-                if now >= next_diag:
-                    diag_period_ns = round(self.options.diagnostics_period_s * 1e9)
-                    next_diag = now + diag_period_ns
-                    self._publish_diagnostics(now)
             except Exception as err:  # keep running whatever one message did
                 if not self.context.ok():
                     break
-                self.get_logger().error(f"worker: {type(err).__name__}: {err}")
+                self._worker_error("worker", err)
+            now = time.monotonic_ns()
+            if now < next_diag:
+                continue
+            diag_period_ns = round(self.options.diagnostics_period_s * 1e9)
+            next_diag = now + diag_period_ns
+            try:  # on its own: /diagnostics goes on even while every step fails
+                self._publish_diagnostics(now)
+            except Exception as err:
+                if not self.context.ok():
+                    break
+                self._worker_error("diagnostics", err)
+
+    def _worker_error(self, where: str, err: Exception) -> None:
+        """Log an exception the worker survived (at most once a second: a message that
+        fails every frame must not flood the log)."""
+        self.get_logger().error(f"{where}: {type(err).__name__}: {err}", throttle_duration_sec=1.0)
+
+    def _on_options(self, options: NodeOptions) -> None:
+        """An option change reached the worker: the dense stage follows it too."""
+        if self._dense is not None:
+            self._dense.stage.options = options
 
     def _step(self) -> bool:
         """Hand over what arrived, then process at most one frame and publish its outputs
         at once (a newer frame arriving meanwhile is seen before the next one is taken).
         Returns whether a frame was taken from the queue."""
         pipeline = self._pipeline
-        for out in feed(pipeline, self._inbox.drain()):
+        entries = self._inbox.drain()
+        dropped = self._inbox.dropped  # read after the drain: counts what it lost
+        if dropped > self._backlog_dropped:
+            pipeline.count_backlog_dropped(dropped - self._backlog_dropped)
+            self._backlog_dropped = dropped
+        outs = feed(
+            pipeline,
+            entries,
+            on_error=lambda kind, err: self._worker_error(f"input {kind}", err),
+            on_options=self._on_options,
+        )
+        for out in outs:
             self._publish(out)  # frames from before an IMU time jump
         before = pipeline.frames_taken
         start = time.monotonic_ns()
@@ -480,7 +561,8 @@ class OwlNode(Node):
         if out.gyro_bias is not None:
             self._bias_pub.publish(out.gyro_bias)
         done = time.monotonic_ns()
-        stamp_latency = (self.get_clock().now().nanoseconds - header_to_ns(out.header)) * 1e-9
+        clock_ns = self.get_clock().now().nanoseconds  # 0 under use_sim_time before /clock
+        stamp_latency = (clock_ns - header_to_ns(out.header)) * 1e-9 if clock_ns > 0 else None
         self._pipeline.record_latency((done - out.arrival_ns) * 1e-9, stamp_latency)
         if out.result.heading is not None and self._marker_pub.get_subscription_count() > 0:
             self._marker_pub.publish(heading_marker(out.result.heading, out.header))
@@ -520,7 +602,8 @@ class OwlNode(Node):
         if self._dense is not None:
             self._dense.close()  # its thread publishes the last handed-over frame first
         deadline = time.monotonic() + FLUSH_TIMEOUT_S
-        pubs = (self._points_pub, self._heading_pub, self._bias_pub, self._debug_pub)
+        pubs = [self._points_pub, self._heading_pub, self._heading_cov_pub, self._bias_pub]
+        pubs += [self._marker_pub, self._debug_pub]
         dense = self._dense.publishers if self._dense is not None else []
         for pub in (*pubs, *dense, self._diag_pub):
             left = deadline - time.monotonic()

@@ -315,6 +315,10 @@ class Pipeline:
                 outs.append(out)
         return outs
 
+    def count_backlog_dropped(self, count: int) -> None:
+        """``count`` more input messages were dropped from the node's full backlog."""
+        self.totals.backlog_dropped += int(count)
+
     def note_qos_event(self, text: str) -> None:
         """Record a QoS problem (e.g. an incompatible publisher/subscriber) for diagnostics."""
         self.totals.qos_events += 1
@@ -554,6 +558,14 @@ class Pipeline:
         order = self._jumps.check_image(stamp)
         if order is ImageStamp.DUPLICATE:
             self._skip(Skip.DUPLICATE_STAMP, f"image stamp {stamp} ns repeated")
+            return None
+        if order is ImageStamp.OUT_OF_ORDER:
+            last = self._jumps.last_image_ns or stamp
+            self._skip(
+                Skip.OUT_OF_ORDER,
+                f"image stamp {stamp} ns is {(last - stamp) * 1e-6:.1f} ms before the last "
+                "processed frame's (out of order; a jump back beyond max_frame_gap_s resets)",
+            )
             return None
         if order is ImageStamp.BACKWARDS:
             self._time_jump(self._jumps.image_jump(stamp))

@@ -127,6 +127,11 @@ def _input_problems(s: StatusInputs) -> tuple[Level, list[str]]:
         warnings.append(s.last_imu_problem)
     if c.qos_events:
         warnings.append(f"QoS: {s.qos_events[-1]}")
+    if c.backlog_dropped:
+        warnings.append(
+            f"{c.backlog_dropped} IMU/camera_info/speed messages dropped: the worker fell "
+            "behind by more than its input backlog holds"
+        )
     if c.images_missing > MISSING_IMAGES_WARN * (c.images + c.images_missing):
         warnings.append(_missing_images_text(c.images_missing, c.images, s.image_bytes))
     if warnings:
@@ -174,6 +179,7 @@ def input_status(s: StatusInputs) -> StatusRecord:
             "last_imu_problem": s.last_imu_problem,
             "qos_events_total": t.qos_events,
             "images_missing_total": t.images_missing,
+            "backlog_dropped_total": t.backlog_dropped,
             "qos_last_event": s.qos_events[-1] if s.qos_events else "",
             "wrong_type_publishers": "; ".join(s.wrong_type),
         },
@@ -243,6 +249,7 @@ def processing_status(s: StatusInputs) -> StatusRecord:
             "skipped_no_camera_info_total": t.skipped_no_camera_info,
             "skipped_bad_image_total": t.skipped_bad_image,
             "skipped_duplicate_stamp_total": t.skipped_duplicate_stamp,
+            "skipped_out_of_order_total": t.skipped_out_of_order,
             "skipped_engine_error_total": t.skipped_engine_error,
             "time_jumps_total": t.time_jumps,
             "last_time_jump": s.last_jump,

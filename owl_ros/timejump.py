@@ -6,7 +6,9 @@
   finite one is a jump; one less far back is only out of order (the gyro buffer drops
   it). :meth:`TimeJumps.split_imu` cuts a batch of samples into runs at the jumps,
   vectorised over the samples (a loop only over the jumps, which are rare).
-- images: a stamp before the last processed frame's is a jump; an equal one a duplicate.
+- images: a stamp more than ``tolerance_ns`` before the last processed frame's is a jump;
+  one less far back is only out of order (the frame is skipped, the tracks kept); an
+  equal one a duplicate.
 
 What to do about a jump (process the frames queued before it, reset the engine) is the
 pipeline's business; this class only finds them and says what happened.
@@ -59,14 +61,15 @@ class ImageStamp(Enum):
 
     NEXT = "next"  # later (or nothing processed yet)
     DUPLICATE = "duplicate"  # equal
-    BACKWARDS = "backwards"  # earlier: a time jump
+    OUT_OF_ORDER = "out_of_order"  # earlier, by at most the tolerance: skip the frame
+    BACKWARDS = "backwards"  # earlier by more: a time jump
 
 
 class TimeJumps:
     """Backwards-time detector for the IMU and image streams (see the module docstring).
 
     Args:
-        tolerance_ns: how far an IMU stamp may go back before it is a jump, ns.
+        tolerance_ns: how far an IMU or image stamp may go back before it is a jump, ns.
     """
 
     def __init__(self, tolerance_ns: int) -> None:
@@ -125,7 +128,11 @@ class TimeJumps:
         last = self.last_image_ns
         if last is None or stamp_ns > last:
             return ImageStamp.NEXT
-        return ImageStamp.DUPLICATE if stamp_ns == last else ImageStamp.BACKWARDS
+        if stamp_ns == last:
+            return ImageStamp.DUPLICATE
+        if last - stamp_ns <= self.tolerance_ns:
+            return ImageStamp.OUT_OF_ORDER
+        return ImageStamp.BACKWARDS
 
     def image_jump(self, stamp_ns: int) -> Jump:
         """The jump of a frame stamped before the last processed one."""

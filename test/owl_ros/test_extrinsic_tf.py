@@ -5,10 +5,11 @@ tf2_ros has no PyPI wheel, so the real module cannot run in this test environmen
 for that reason the TF path is exercised with a small stand-in ``tf2_ros`` module put in
 ``sys.modules``: a ``Buffer`` whose ``lookup_transform`` returns a real
 geometry_msgs/TransformStamped for the one expected (IMU frame, camera frame) pair and
-raises otherwise, and a no-op ``TransformListener``. Everything else is real: rclpy (its
-own context on a private ROS_DOMAIN_ID), the node as ``owl_node`` builds it, its worker
-thread and pipeline. Messages are handed to the node's subscription callbacks directly
-instead of being published over DDS. What the node reports is read from its log lines.
+raises otherwise, and a ``TransformListener`` that counts its ``unregister``. Everything
+else is real: rclpy (its own context on a private ROS_DOMAIN_ID), the node as ``owl_node``
+builds it, its worker thread and pipeline. Messages are handed to the node's subscription
+callbacks directly instead of being published over DDS. What the node reports is read from
+its log lines.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ class FakeTf:
     def __init__(self) -> None:
         self.lookups: list[tuple[str, str]] = []
         self.listeners: list[tuple[Any, Any, bool]] = []
+        self.unregistered = 0  # listeners closed (tf2_ros: destroys its subscriptions)
         self.ready = True  # False: TF does not have the transform yet
         fake = self
 
@@ -69,6 +71,9 @@ class FakeTf:
         class TransformListener:
             def __init__(self, buffer: Any, node: Any, spin_thread: bool = True) -> None:
                 fake.listeners.append((buffer, node, spin_thread))
+
+            def unregister(self) -> None:
+                fake.unregistered += 1
 
         self.module = types.ModuleType("tf2_ros")
         self.module.Buffer = Buffer  # type: ignore[attr-defined]
@@ -149,6 +154,7 @@ def test_no_parameter_the_rotation_comes_from_tf(
     assert engine_rotation(node) == TF_ROTATION
     time.sleep(0.3)  # a few diagnostics periods: TF is looked up once it answered, no more
     assert len(fake.lookups) == n_lookups
+    assert fake.unregistered == 1  # and no longer listened to
     out = capfd.readouterr()
     log = out.out + out.err
     assert "from default (identity) until TF has the IMU -> camera transform" in log, log

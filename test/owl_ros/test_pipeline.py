@@ -372,6 +372,23 @@ def test_duplicate_image_stamp_skipped(feed: Feed) -> None:
     assert diag(pipe, "processing")[1]["skipped_duplicate_stamp_total"] == "1"
 
 
+def test_out_of_order_image_skipped_without_a_reset(feed: Feed) -> None:
+    """A frame arriving after a later one (two drivers on one topic, a reordering bridge)
+    by less than max_frame_gap_s is skipped, not a time jump: the tracks are kept and
+    every other cloud is the one of the run without the stray frame."""
+    clean = run(make(options(feed)), events(feed))
+    pipe = make(options(feed))
+    evs = events(feed)
+    late = header_to_ns(feed.images[6].header)
+    k = next(i for i, e in enumerate(evs) if e[0] > late)
+    evs.insert(k, (late + 1, Role.IMAGE, feed.images[4]))  # frame 4 again, after frame 6
+    outs = run(pipe, evs)
+    _, values, _ = diag(pipe, "processing")
+    assert values["skipped_out_of_order_total"] == "1"
+    assert values["time_jumps_total"] == "0"
+    assert [bytes(o.cloud.data) for o in outs] == [bytes(o.cloud.data) for o in clean]
+
+
 def test_bounded_wait_for_imu(feed: Feed) -> None:
     pipe = make(options(feed, imu_wait_s=0.05))
     stamps = [header_to_ns(i.header) for i in feed.images]
@@ -441,13 +458,47 @@ def test_newest_frame_wins_when_queue_full(feed: Feed) -> None:
 
 def test_inbox_bounded_in_order() -> None:
     inbox = Inbox(capacity=3)
-    for k in range(5):
+    inbox.put(Control.OPTIONS, "first", 0)
+    for k in range(1, 6):
         inbox.put(Role.IMU, k, k)
     inbox.put(Control.QOS, "text", 9)
-    assert inbox.dropped == 3
-    # what is kept comes out in the order it was put
-    assert inbox.drain() == [(Role.IMU, 3, 3), (Role.IMU, 4, 4), (Control.QOS, "text", 9)]
+    assert inbox.dropped == 2
+    # what is kept comes out in the order it was put; a control entry is never dropped
+    assert inbox.drain() == [
+        (Control.OPTIONS, "first", 0),
+        (Role.IMU, 3, 3),
+        (Role.IMU, 4, 4),
+        (Role.IMU, 5, 5),
+        (Control.QOS, "text", 9),
+    ]
     assert inbox.drain() == []
+
+
+def test_feed_isolates_a_failing_entry(feed: Feed, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An entry that raises costs only itself: the IMU samples and the option change
+    drained with it still reach the pipeline, and the option change reaches the dense
+    stage's hook too."""
+    pipe = make(options(feed))
+    failing = pipe.note_qos_event
+
+    def note(text: str) -> None:
+        if text == "bad":
+            raise RuntimeError("injected")
+        failing(text)
+
+    monkeypatch.setattr(pipe, "note_qos_event", note)
+    new_opts = options(feed, queue_size=4)
+    entries = [(Control.QOS, "bad", 0)]
+    entries += [(Role.IMU, m, header_to_ns(m.header)) for m in feed.imus[:50]]
+    entries += [(Control.OPTIONS, new_opts, 1), (Control.QOS, "good", 2)]
+    errors: list[tuple[Any, Exception]] = []
+    seen: list[NodeOptions] = []
+    feed_inbox(pipe, entries, on_error=lambda k, e: errors.append((k, e)), on_options=seen.append)
+    assert [(k, str(e)) for k, e in errors] == [(Control.QOS, "injected")]
+    assert pipe.totals.imu == 50 and pipe.totals.qos_events == 1
+    assert pipe.options is new_opts and seen == [new_opts]
+    with pytest.raises(RuntimeError, match="injected"):  # without a handler: raised
+        feed_inbox(pipe, [(Control.QOS, "bad", 3)])
 
 
 def test_bag_loop_seen_late_by_a_busy_worker_resets_once(feed: Feed) -> None:

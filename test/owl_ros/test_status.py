@@ -122,3 +122,16 @@ def test_missing_images_warn_with_the_fast_dds_hint_only_for_large_images() -> N
     assert message.startswith("40 of 100 images missing")
     assert "images of 900 KiB exceed Fast DDS's default 512 KiB" in message
     assert "fastdds_large_images.xml" in message
+
+
+def test_backlog_drops_warn_and_are_counted() -> None:
+    """IMU/camera_info messages lost from the node's full input backlog (a stalled worker)
+    are a WARN of "owl: input" in the window they happen, and a total."""
+    counts = Counters(images=60, imu=800, camera_info=60, backlog_dropped=120)
+    rec = build_status(_inputs(counts=counts, totals=Counters(backlog_dropped=120)))[0]
+    assert rec.level == Level.WARN
+    assert rec.message.startswith("120 IMU/camera_info/speed messages dropped")
+    assert dict(rec.values)["backlog_dropped_total"] == "120"
+    quiet = Counters(images=60, imu=800, camera_info=60)
+    rec = build_status(_inputs(counts=quiet, totals=Counters(backlog_dropped=120)))[0]
+    assert rec.level == Level.OK and dict(rec.values)["backlog_dropped_total"] == "120"

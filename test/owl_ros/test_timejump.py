@@ -77,7 +77,10 @@ def test_image_stamps() -> None:
     jumps.image_processed(1000 * MS)
     assert jumps.check_image(1001 * MS) is ImageStamp.NEXT
     assert jumps.check_image(1000 * MS) is ImageStamp.DUPLICATE
-    assert jumps.check_image(999 * MS) is ImageStamp.BACKWARDS  # any amount back
+    # back by up to the tolerance: out of order (skipped); further: a jump
+    assert jumps.check_image(999 * MS) is ImageStamp.OUT_OF_ORDER
+    assert jumps.check_image(900 * MS) is ImageStamp.OUT_OF_ORDER
+    assert jumps.check_image(900 * MS - 1) is ImageStamp.BACKWARDS
     jump = jumps.image_jump(400 * MS)
     assert jump.what == (
         f"image stamp went back 0.600 s ({400 * MS} ns after {1000 * MS} ns): engine reset"
