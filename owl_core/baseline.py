@@ -19,7 +19,9 @@ frame) of the same tracks, ``interval_s`` apart:
 Both give per-point ``r/|t|`` for the current frame, an inlier mask (RANSAC outliers are the
 baseline's "moving" points) and the heading in the current camera optical frame. Pure numpy
 and OpenCV; no ROS. :class:`TwoViewBaseline` applies them to :class:`~owl_core.tracker.Tracks`
-(the current frame against the one ``gap_frames`` earlier).
+(the current frame against the one ``gap_frames`` earlier). :class:`FilteredBaseline` passes
+a baseline's per-frame heading through the heading filter OWL itself uses, so that a
+comparison does not credit OWL with its temporal filter.
 """
 
 from __future__ import annotations
@@ -27,12 +29,13 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
+from owl_core import heading_filter as hf
 from owl_core.camera import CameraModel
 from owl_core.errors import InvalidInputError
 from owl_core.tracker import Tracks
@@ -44,6 +47,7 @@ BoolArray = npt.NDArray[np.bool_]
 __all__ = [
     "BaselineFrame",
     "BaselineOptions",
+    "FilteredBaseline",
     "TwoViewBaseline",
     "TwoViewEstimate",
     "essential_two_view",
@@ -502,3 +506,71 @@ class TwoViewBaseline:
             {"estimate": self.clock() - t_start},
             est.reason,
         )
+
+
+class FilteredBaseline:
+    """A two-view baseline's heading through the heading filter OWL uses.
+
+    OWL's heading is a filtered one (:class:`~owl_core.heading_filter.TwoModelHeading`: a
+    straight-path model that averages the last seconds and a turning one whose rate removes
+    the lag, weighted by how well each predicts); a per-frame two-view estimate compared
+    with it unfiltered credits OWL with the filter. This feeds each frame's two-view heading
+    to the same filter with the same options: predicted between frames with the gyro's
+    rotation, updated with the two-view heading as a measurement of the middle of its
+    interval (``tau = -interval_s / 2``) with a constant 1-sigma ``sigma_rad`` (the two-view
+    solve gives no uncertainty; a user tunes it once, as the bench's grid does).
+
+    A frame whose two-view solve gave no heading gets none here either (the filter keeps its
+    state); a step the gyro does not cover restarts the filter from the measurement.
+
+    Args:
+        sigma_rad: the measurement's 1-sigma angular uncertainty, rad (> 0).
+        rotation: ``(t0_ns, t1_ns) -> R_{1<-0}`` (3, 3) camera frame, or None where the
+            gyro does not cover the interval.
+        options: the filter's settings (OWL's defaults).
+    """
+
+    def __init__(
+        self, sigma_rad: float, rotation: RotationFn, options: hf.TwoModelOptions | None = None
+    ) -> None:
+        if not (math.isfinite(sigma_rad) and sigma_rad > 0):
+            raise InvalidInputError(f"sigma_rad must be positive and finite, got {sigma_rad!r}")
+        self.sigma_rad = float(sigma_rad)
+        self._rotation = rotation
+        self._filter = hf.TwoModelHeading(options or hf.TwoModelOptions())
+        #: clock of the time added to ``timings["estimate"]``, s
+        self.clock: Callable[[], float] = time.perf_counter
+
+    def reset(self) -> None:
+        """Forget the filter's state."""
+        self._filter.reset()
+
+    def step(self, frame: BaselineFrame) -> BaselineFrame:
+        """The frame with its heading replaced by the filtered one (at the image time).
+
+        Args:
+            frame: the baseline's output for this image.
+
+        Returns:
+            a copy of ``frame``: heading filtered (None where the frame has none), the
+            filter's time added to ``timings["estimate"]``; points and ranges unchanged.
+        """
+        t_start = self.clock()
+        flt = self._filter
+        heading = None
+        if frame.heading is not None and np.all(np.isfinite(frame.heading)):
+            last = flt.stamp_ns
+            if last is not None:
+                r_10 = self._rotation(last, frame.stamp_ns) if frame.stamp_ns > last else None
+                if r_10 is None:
+                    flt.reset()
+                else:
+                    flt.predict(frame.stamp_ns, r_10)
+            tau = -0.5 * max(frame.interval_s, 0.0)
+            flt.update(
+                frame.stamp_ns, np.asarray(frame.heading, dtype=np.float64), tau, self.sigma_rad
+            )
+            heading = None if flt.heading is None else flt.heading.copy()
+        timings = dict(frame.timings)
+        timings["estimate"] = timings.get("estimate", 0.0) + self.clock() - t_start
+        return replace(frame, heading=heading, timings=timings)

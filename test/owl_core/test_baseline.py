@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from owl_core.baseline import (
+    BaselineFrame,
     BaselineOptions,
+    FilteredBaseline,
     TwoViewBaseline,
     essential_two_view,
     gyro_two_view,
@@ -211,3 +215,70 @@ def test_a_pair_a_rotation_explains_gives_no_heading() -> None:
     assert ungated.heading is not None
     with pytest.raises(InvalidInputError, match="min_heading_parallax_px"):
         BaselineOptions(min_heading_parallax_px=-1.0)
+
+
+def _straight_path_frames(noise_deg: float, n: int = 90, seed: int = 4):
+    """A camera on a straight line, turning at a constant rate (30 Hz, gap 1): per frame
+    the true heading in the current camera frame and a two-view measurement of it with
+    isotropic angular noise; the gyro's R_{1<-0} between any two stamps."""
+    rate = np.array([0.0, 0.4, 0.05])  # rad/s, camera frame
+    world_heading = np.array([0.3, 0.0, 1.0]) / np.linalg.norm([0.3, 0.0, 1.0])
+    rng = np.random.default_rng(seed)
+    dt_ns = 33_333_333
+    frames, truth = [], []
+    for k in range(n):
+        stamp = (k + 1) * dt_ns
+        h = so3_exp(-rate * stamp * 1e-9) @ world_heading  # world direction seen now
+        z = h + np.radians(noise_deg) * rng.standard_normal(3)
+        pixels = rng.uniform(0, 100, (5, 2))
+        frames.append(
+            BaselineFrame(
+                stamp, z / np.linalg.norm(z), pixels, np.arange(5, dtype=np.uint32),
+                np.ones(5), np.zeros(5, np.uint8), dt_ns * 1e-9, {"estimate": 0.001},
+            )
+        )  # fmt: skip
+        truth.append(h)
+
+    def rotation(t0: int, t1: int) -> np.ndarray:
+        return so3_exp(-rate * (t1 - t0) * 1e-9)
+
+    return frames, truth, rotation
+
+
+def test_filtered_baseline_averages_a_straight_path_and_follows_the_turning_camera():
+    """The same heading filter as OWL's: exact measurements stay exact while the camera
+    turns (the gyro's rotation carries the state between frames), and noisy ones are
+    averaged (after a second, the error well below a single frame's)."""
+    frames, truth, rotation = _straight_path_frames(0.0)
+    flt = FilteredBaseline(np.radians(0.2), rotation)
+    for f, h in zip(frames, truth, strict=True):
+        out = flt.step(f)
+        assert angle(out.heading, h) < 1e-6
+        assert out.pixels is f.pixels and out.range_over_speed is f.range_over_speed
+        assert out.timings["estimate"] >= f.timings["estimate"]
+    frames, truth, rotation = _straight_path_frames(0.5)
+    flt = FilteredBaseline(np.radians(0.5), rotation)
+    raw = [np.degrees(angle(f.heading, h)) for f, h in zip(frames, truth, strict=True)]
+    filtered = [
+        np.degrees(angle(flt.step(f).heading, h)) for f, h in zip(frames, truth, strict=True)
+    ]
+    assert np.median(filtered[30:]) < 0.3 * np.median(raw[30:]), (
+        np.median(filtered[30:]),
+        np.median(raw[30:]),
+    )
+
+
+def test_filtered_baseline_without_a_measurement_or_a_gyro():
+    """No two-view heading: none filtered either (the state is kept). A step the gyro does
+    not cover restarts the filter from the measurement."""
+    frames, truth, rotation = _straight_path_frames(0.0, n=6)
+    flt = FilteredBaseline(np.radians(0.2), rotation)
+    flt.step(frames[0])
+    empty = replace(frames[1], heading=None)
+    assert flt.step(empty).heading is None
+    assert angle(flt.step(frames[2]).heading, truth[2]) < 1e-6  # predicted across the gap
+    blind = FilteredBaseline(np.radians(0.2), lambda t0, t1: None)
+    blind.step(frames[3])
+    assert np.allclose(blind.step(frames[4]).heading, frames[4].heading)  # restarted
+    with pytest.raises(InvalidInputError, match="sigma_rad"):
+        FilteredBaseline(0.0, rotation)
