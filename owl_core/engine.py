@@ -100,6 +100,14 @@ class EngineOptions:
         fit_window_s: the fit uses the frames within this many seconds of the image (at
             least 3, at most ``fit_frames``; :func:`owl_core.windows.fit_columns`): 5
             frames at 30 Hz, 3 at 10 Hz, 10 at 60 Hz. None: always ``fit_frames``.
+        fit_turning_window_s: the window while the heading filter's turning model
+            dominates (its weight at least ``fit_turning_weight``, judged on the last
+            frame), s, at least 2 frames: 4 frames at 30 Hz, 2 at 10 Hz. On a curving
+            path the heading changes over the window and the fit's reference time lags
+            the image by half of it; the filter's rate extrapolates that lag, and a
+            shorter lag leaves less to extrapolate. None: ``fit_window_s`` always.
+        fit_turning_weight: the turning model's weight (0..1) from which
+            ``fit_turning_window_s`` applies.
         fit_order: polynomial order of that fit: 1 (straight line; its slope lags by half
             the window) or 2 (quadratic, evaluated at the current stamp).
         min_track_frames: tracks seen in fewer frames than this (>= 2; at most the frames
@@ -207,6 +215,8 @@ class EngineOptions:
     tracker: TrackerOptions = field(default_factory=TrackerOptions)
     fit_frames: int = 10
     fit_window_s: float | None = 0.15
+    fit_turning_window_s: float | None = 0.1
+    fit_turning_weight: float = 0.5
     fit_order: int = 1
     min_track_frames: int = 5
     pixel_noise_px: float = 0.15
@@ -262,9 +272,10 @@ class EngineOptions:
             raise InvalidInputError(
                 f"rolling_shutter_readout_s must be in [0, 1) s, got {readout!r}"
             )
-        turning = self.confirm_below_turning
-        if not (isinstance(turning, int | float) and turning >= 0):
-            raise InvalidInputError(f"confirm_below_turning must be >= 0, got {turning!r}")
+        for name in ("confirm_below_turning", "fit_turning_weight"):
+            turning = getattr(self, name)
+            if not (isinstance(turning, int | float) and turning >= 0):
+                raise InvalidInputError(f"{name} must be >= 0, got {turning!r}")
         ints = {
             "max_features": (self.max_features, 1),
             "fit_frames": (self.fit_frames, 2),
@@ -317,12 +328,10 @@ class EngineOptions:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise InvalidInputError(f"{name} must be >= 0 and finite, got {value!r}")
-        if self.fit_window_s is not None and not (
-            math.isfinite(self.fit_window_s) and self.fit_window_s > 0
-        ):
-            raise InvalidInputError(
-                f"fit_window_s must be positive or None, got {self.fit_window_s!r}"
-            )
+        for name in ("fit_window_s", "fit_turning_window_s"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise InvalidInputError(f"{name} must be positive or None, got {value!r}")
         if self.residual_memory_s is not None and not (
             math.isfinite(self.residual_memory_s) and self.residual_memory_s > 0
         ):
@@ -1131,9 +1140,15 @@ class OwlEngine:
         tracks = tracked.tracks
         n_fit = opts.fit_frames
         if opts.fit_window_s is not None:
-            n_fit = max(
-                windows.fit_columns(tracks.stamps_ns, stamp, opts.fit_window_s, 3, n_fit), 1
-            )
+            window, floor = opts.fit_window_s, 3
+            flt = self._heading_filter
+            if (
+                opts.fit_turning_window_s is not None
+                and flt.heading is not None
+                and flt.weights[1] >= opts.fit_turning_weight
+            ):
+                window, floor = opts.fit_turning_window_s, 2
+            n_fit = max(windows.fit_columns(tracks.stamps_ns, stamp, window, floor, n_fit), 1)
         min_frames = min(opts.min_track_frames, max(n_fit, 2))
         stamps = tracks.stamps_ns[:n_fit]
         gyro = self._gyro_rotations(stamps, stamp, tracked.bias, len(self._gyro) > 0)
