@@ -51,6 +51,10 @@ def test_options_validation_names_the_value() -> None:
         EngineOptions(bias_inflation=0.5)
     with pytest.raises(InvalidInputError, match=r"confirm_below_turning.*-0.1"):
         EngineOptions(confirm_below_turning=-0.1)
+    with pytest.raises(InvalidInputError, match=r"fit_turning_weight.*-0.5"):
+        EngineOptions(fit_turning_weight=-0.5)
+    with pytest.raises(InvalidInputError, match=r"fit_turning_window_s.*0.0"):
+        EngineOptions(fit_turning_window_s=0.0)
 
 
 def test_bad_image_raises(street: tuple[scenarios.Simulation, list[scenarios.Frame]]) -> None:
@@ -285,6 +289,29 @@ def test_confirmed_warm_start_follows_the_turning_weight(
     )
     always = headings(confirm_below_turning=2.0)
     assert not np.array_equal(always, never)  # the street's frames confirm their warm starts
+
+
+def test_turning_fit_window_follows_the_turning_weight(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]],
+) -> None:
+    """The shorter track-fit window applies only while the turning model weighs at least
+    ``fit_turning_weight``: above 1 it never does, exactly as without a turning window; at 0
+    it does on every frame with a heading, and the street's 0.1 s window (4 frames at 30 Hz
+    against 0.15 s's 5) changes its headings."""
+    sim, frames = street
+
+    def headings(**overrides: object) -> np.ndarray:
+        engine = make_engine(sim, **overrides)
+        engine.add_gyro(sim.gyro_samples())
+        out = [engine.process(ImageFrame(f.stamp_ns, f.image)).heading for f in frames[:12]]
+        return np.array([h for h in out if h is not None])
+
+    never = headings(fit_turning_weight=2.0)
+    assert never.shape[0] >= 5
+    np.testing.assert_array_equal(never, headings(fit_turning_window_s=None))
+    always = headings(fit_turning_weight=0.0)
+    assert always.shape == never.shape
+    assert not np.array_equal(always, never)
 
 
 def test_gyro_starting_late_shortens_fits_and_says_so(
