@@ -132,6 +132,14 @@ class DenseOptions:
             dimensionless (> 0).
         fb_max_px: pixels whose forward-backward flow disagreement exceeds 2x this are
             left out of the local fit, working pixels.
+        fb_refinement_iterations: variational refinement iterations of the forward flow,
+            which serves only the forward-backward check (the backward flow, the one
+            measured, keeps the preset's); None: the preset's. With 1 instead of the balanced
+            preset's 3 the forward flow differs from OpenCV's medium one by 0.08 px
+            (median) instead of 0.03, and the dense stage takes 5 % less CPU (0: 9 %); on
+            the bench's six static scenes the confident share went from 71.4 to 70.6 %
+            of the textured pixels (0: 67.8 %) and the r/|t| errors from 2.57 / 9.10 to
+            2.55 / 8.99 % (0: 2.50 / 8.82 %), count (>= 0) or None.
         heading_min_sin: no heading-route L closer than asin(this) to the focus of
             expansion (or its antipode), dimensionless.
         max_disagreement: a pixel whose two L routes differ by this many combined sigmas
@@ -169,6 +177,7 @@ class DenseOptions:
     min_texture: float = 4.0
     local_variance_scale: float = 30.0
     fb_max_px: float = 0.3
+    fb_refinement_iterations: int | None = 1
     heading_min_sin: float = 0.05
     max_disagreement: float = 4.0
     rel_sigma: float = 0.09
@@ -192,6 +201,13 @@ class DenseOptions:
             w = getattr(self, name)
             if isinstance(w, bool) or not isinstance(w, int) or w < low or w % 2 == 0:
                 raise InvalidInputError(f"dense {name} must be an odd integer >= {low}, got {w!r}")
+        fb_iter = self.fb_refinement_iterations
+        if fb_iter is not None and (
+            isinstance(fb_iter, bool) or not isinstance(fb_iter, int) or fb_iter < 0
+        ):
+            raise InvalidInputError(
+                f"dense fb_refinement_iterations must be an integer >= 0 or None, got {fb_iter!r}"
+            )
         if self.local_step not in (1, 2):
             raise InvalidInputError(f"dense local_step must be 1 or 2, got {self.local_step!r}")
         if self.preset not in DIS_PRESETS:
@@ -543,11 +559,18 @@ class _Flow:
     fb2: F32
 
 
-def _flow(grid: _Grid, dis: cv2.DISOpticalFlow, prev: npt.NDArray[np.uint8], cur: Any) -> _Flow:
-    """DIS flow current -> previous and previous -> current, and their disagreement."""
+def _flow(
+    grid: _Grid,
+    dis: cv2.DISOpticalFlow,
+    dis_check: cv2.DISOpticalFlow,
+    prev: npt.NDArray[np.uint8],
+    cur: Any,
+) -> _Flow:
+    """DIS flow current -> previous (``dis``) and previous -> current (``dis_check``, only
+    for the check), and their disagreement."""
     none: Any = None
     back = np.asarray(dis.calc(cur, prev, none), dtype=np.float32)
-    fwd = np.asarray(dis.calc(prev, cur, none), dtype=np.float32)
+    fwd = np.asarray(dis_check.calc(prev, cur, none), dtype=np.float32)
     map_x = grid.xs + back[..., 0]
     map_y = grid.ys + back[..., 1]
     outside = (1e3, 1e3, 1e3, 1e3)  # px: a disagreement nothing passes
@@ -974,7 +997,8 @@ class _Setup:
         grid: the working grid.
         fit_grid: the local fit's grid (``local_step`` times coarser, or ``grid``).
         options: settings.
-        dis: the DIS flow instance.
+        dis: the DIS flow instance of the measured (backward) flow.
+        dis_check: the one of the forward flow of the check (may be ``dis``).
         local_fit: the window's filters.
     """
 
@@ -982,6 +1006,7 @@ class _Setup:
     fit_grid: _Grid
     options: DenseOptions
     dis: cv2.DISOpticalFlow
+    dis_check: cv2.DISOpticalFlow
     local_fit: _LocalFit
 
 
@@ -1018,7 +1043,7 @@ def dense_owl(
     """
     o, grid = setup.options, setup.grid
     clock = _Clock()
-    flow = _flow(grid, setup.dis, prev, cur)
+    flow = _flow(grid, setup.dis, setup.dis_check, prev, cur)
     clock.lap("flow")
     field = _derotate(grid, flow, rotation, dt_s, o.flow_noise_px, readout)
     tex = _texture(cur)
@@ -1065,6 +1090,16 @@ def dense_owl(
     )
 
 
+def _dis(preset: int, descent: int | None, refinement: int | None) -> cv2.DISOpticalFlow:
+    """A DIS instance of an OpenCV preset with its iterations overridden (None: keep)."""
+    dis = cv2.DISOpticalFlow.create(preset)
+    if descent is not None:
+        dis.setGradientDescentIterations(descent)
+    if refinement is not None:
+        dis.setVariationalRefinementIterations(refinement)
+    return dis
+
+
 class _Clock:
     """Wall-clock laps of the stages, s."""
 
@@ -1092,18 +1127,18 @@ class DenseOwl:
         self.camera = camera
         self.options = opts = options if options is not None else DenseOptions()
         preset, descent, refinement = DIS_PRESETS[opts.preset]
-        dis = cv2.DISOpticalFlow.create(preset)
-        if descent is not None:
-            dis.setGradientDescentIterations(descent)
-        if refinement is not None:
-            dis.setVariationalRefinementIterations(refinement)
+        dis = _dis(preset, descent, refinement)
+        dis_check = dis
+        fb_iter = opts.fb_refinement_iterations
+        if fb_iter is not None and fb_iter != dis.getVariationalRefinementIterations():
+            dis_check = _dis(preset, descent, fb_iter)
         step = opts.local_step
         self.grid = _grid(camera, opts.width, opts.height)
         fit_grid = (
             self.grid if step == 1 else _grid(camera, opts.width // step, opts.height // step)
         )
         window = max(3, (opts.window_px // step) | 1)
-        self._setup = _Setup(self.grid, fit_grid, opts, dis, _LocalFit(window))
+        self._setup = _Setup(self.grid, fit_grid, opts, dis, dis_check, _LocalFit(window))
         # (stamp_ns, working image), newest last, at most baseline_frames
         self._ring: list[tuple[int, npt.NDArray[np.uint8]]] = []
 

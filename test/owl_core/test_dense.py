@@ -297,6 +297,27 @@ def test_global_affine_split_is_exact() -> None:
     assert np.allclose(s2_r[ok], s2[ok], rtol=1e-3, atol=1e-12)
 
 
+def test_the_check_flow_refinement_changes_only_the_check() -> None:
+    """The forward flow serves the forward-backward check alone: with fewer refinement
+    iterations the measured (backward) flow is the same array, and with the preset's own
+    count (3 for balanced) everything is as with None; the plane is still measured."""
+
+    def run(iterations: int | None) -> Any:
+        opts = DenseOptions(width=160, height=120, fb_refinement_iterations=iterations)
+        return _run(speed=2.0, plane_z=4.0, options=opts)
+
+    dense, res_none, rng, _ = run(None)
+    _, res_same, _, _ = run(3)
+    _, res_zero, _, _ = run(0)
+    np.testing.assert_array_equal(res_same.range_over_speed, res_none.range_over_speed)
+    np.testing.assert_array_equal(res_zero.flow, res_none.flow)
+    truth = _truth_ros(dense, rng, 2.0)
+    conf = res_zero.confident
+    assert res_zero.confident_fraction > 0.6
+    rel = np.abs(res_zero.range_over_speed[conf] - truth[conf]) / truth[conf]
+    assert np.median(rel) < 0.03
+
+
 def test_first_frame_and_a_stamp_going_back_give_none() -> None:
     cam = _camera()
     dense = DenseOwl(cam, DenseOptions(width=160, height=120))
@@ -319,6 +340,8 @@ def test_first_frame_and_a_stamp_going_back_give_none() -> None:
         ({"min_confidence": 1.5}, "min_confidence"),
         ({"baseline_frames": 0}, "baseline_frames"),
         ({"ttc_window_px": 8}, "ttc_window_px"),
+        ({"fb_refinement_iterations": -1}, "fb_refinement_iterations"),
+        ({"fb_refinement_iterations": 1.5}, "fb_refinement_iterations"),
     ],
 )
 def test_bad_options_name_the_value(kwargs: dict[str, object], text: str) -> None:
