@@ -7,6 +7,7 @@ once per module.
 from __future__ import annotations
 
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import pytest
@@ -267,6 +268,18 @@ def test_deterministic(street: tuple[scenarios.Simulation, list[scenarios.Frame]
     np.testing.assert_array_equal(outs[0].ids, outs[1].ids)
 
 
+def _street_headings(
+    street: tuple[scenarios.Simulation, list[scenarios.Frame]], **overrides: object
+) -> np.ndarray:
+    """(K, 3) the headings of the street's first 12 frames that have one, with engine
+    option overrides."""
+    sim, frames = street
+    engine = make_engine(sim, **overrides)
+    engine.add_gyro(sim.gyro_samples())
+    out = [engine.process(ImageFrame(f.stamp_ns, f.image)).heading for f in frames[:12]]
+    return np.array([h for h in out if h is not None])
+
+
 def test_confirmed_warm_start_follows_the_turning_weight(
     street: tuple[scenarios.Simulation, list[scenarios.Frame]],
 ) -> None:
@@ -274,14 +287,7 @@ def test_confirmed_warm_start_follows_the_turning_weight(
     second start on every frame, exactly as ``confirmed_warm_start=False``. Above 1 a warm
     start that RANSAC confirms is refined alone whatever the filter says, which changes the
     street's headings."""
-    sim, frames = street
-
-    def headings(**overrides: object) -> np.ndarray:
-        engine = make_engine(sim, **overrides)
-        engine.add_gyro(sim.gyro_samples())
-        out = [engine.process(ImageFrame(f.stamp_ns, f.image)).heading for f in frames[:12]]
-        return np.array([h for h in out if h is not None])
-
+    headings = partial(_street_headings, street)
     never = headings(confirm_below_turning=0.0)
     assert never.shape[0] >= 5
     np.testing.assert_array_equal(
@@ -298,14 +304,7 @@ def test_turning_fit_window_follows_the_turning_weight(
     ``fit_turning_weight``: above 1 it never does, exactly as without a turning window; at 0
     it does on every frame with a heading, and the street's 0.1 s window (4 frames at 30 Hz
     against 0.15 s's 5) changes its headings."""
-    sim, frames = street
-
-    def headings(**overrides: object) -> np.ndarray:
-        engine = make_engine(sim, **overrides)
-        engine.add_gyro(sim.gyro_samples())
-        out = [engine.process(ImageFrame(f.stamp_ns, f.image)).heading for f in frames[:12]]
-        return np.array([h for h in out if h is not None])
-
+    headings = partial(_street_headings, street)
     never = headings(fit_turning_weight=2.0)
     assert never.shape[0] >= 5
     np.testing.assert_array_equal(never, headings(fit_turning_window_s=None))
