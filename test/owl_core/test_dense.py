@@ -299,8 +299,9 @@ def test_global_affine_split_is_exact() -> None:
 
 def test_the_check_flow_refinement_changes_only_the_check() -> None:
     """The forward flow serves the forward-backward check alone: with fewer refinement
-    iterations the measured (backward) flow is the same array, and with the preset's own
-    count (3 for balanced) everything is as with None; the plane is still measured."""
+    iterations the measured (backward) flow is the same array, with the preset's own count
+    (3 for balanced) everything is as with None, and never more than the preset's; the
+    plane is still measured."""
 
     def run(iterations: int | None) -> Any:
         opts = DenseOptions(width=160, height=120, fb_refinement_iterations=iterations)
@@ -311,6 +312,9 @@ def test_the_check_flow_refinement_changes_only_the_check() -> None:
     _, res_zero, _, _ = run(0)
     np.testing.assert_array_equal(res_same.range_over_speed, res_none.range_over_speed)
     np.testing.assert_array_equal(res_zero.flow, res_none.flow)
+    # never more refinement than the measured flow's: ultrafast has none
+    ultrafast = DenseOwl(_camera(), DenseOptions(preset="ultrafast", fb_refinement_iterations=1))
+    assert ultrafast._setup.dis_check is ultrafast._setup.dis
     truth = _truth_ros(dense, rng, 2.0)
     conf = res_zero.confident
     assert res_zero.confident_fraction > 0.6
