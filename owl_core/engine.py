@@ -102,10 +102,14 @@ class EngineOptions:
             frames at 30 Hz, 3 at 10 Hz, 10 at 60 Hz. None: always ``fit_frames``.
         fit_turning_window_s: the window while the heading filter's turning model
             dominates (its weight at least ``fit_turning_weight``, judged on the last
-            frame), s, at least 2 frames: 4 frames at 30 Hz, 2 at 10 Hz. On a curving
-            path the heading changes over the window and the fit's reference time lags
-            the image by half of it; the filter's rate extrapolates that lag, and a
-            shorter lag leaves less to extrapolate. None: ``fit_window_s`` always.
+            frame), s, at least 2 frames: 4 frames at 30 Hz, 3 at 20 Hz, 2 at 10 Hz. On a
+            curving path the heading changes over the window and the fit's reference
+            time lags the image by half of it; the filter's rate extrapolates that lag,
+            and a shorter lag leaves less to extrapolate. 0.13 rather than 0.1: at 17 Hz
+            (a handheld RealSense walk) 0.1 s holds only 2 frames, and those fits cost
+            the walk 8 of its 167 frames' points and widened its heading's disagreement
+            with the 5-point estimate; 0.13 s keeps 3 there (as ``fit_window_s``) and the
+            same frames as 0.1 s at 10, 20 and 30 Hz. None: ``fit_window_s`` always.
         fit_turning_weight: the turning model's weight (0..1) from which
             ``fit_turning_window_s`` applies.
         fit_order: polynomial order of that fit: 1 (straight line; its slope lags by half
@@ -215,7 +219,7 @@ class EngineOptions:
     tracker: TrackerOptions = field(default_factory=TrackerOptions)
     fit_frames: int = 10
     fit_window_s: float | None = 0.15
-    fit_turning_window_s: float | None = 0.1
+    fit_turning_window_s: float | None = 0.13
     fit_turning_weight: float = 0.5
     fit_order: int = 1
     min_track_frames: int = 5

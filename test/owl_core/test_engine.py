@@ -302,7 +302,7 @@ def test_turning_fit_window_follows_the_turning_weight(
 ) -> None:
     """The shorter track-fit window applies only while the turning model weighs at least
     ``fit_turning_weight``: above 1 it never does, exactly as without a turning window; at 0
-    it does on every frame with a heading, and the street's 0.1 s window (4 frames at 30 Hz
+    it does on every frame with a heading, and the street's 0.13 s window (4 frames at 30 Hz
     against 0.15 s's 5) changes its headings."""
     headings = partial(_street_headings, street)
     never = headings(fit_turning_weight=2.0)
