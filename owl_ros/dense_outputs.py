@@ -109,7 +109,8 @@ def working_camera(camera: CameraModel, width: int, height: int) -> CameraModel:
 @dataclass
 class _Last:
     result: DenseResult | None = None
-    error: str = ""
+    error: str = ""  # why the newest frame gave no result ("" once one did)
+    errors: int = 0
     frames: int = 0
     warned: int = 0
     gyro_missing: int = 0
@@ -173,24 +174,31 @@ class DenseStage:
         return self._work
 
     def reset(self) -> None:
-        """Forget the kept images (call when nobody listens for a while)."""
+        """Forget the kept images and the last result (call when nobody listens for a
+        while: ``owl: dense`` then says there is no result rather than show an old one)."""
         if self._dense is not None:
             self._dense.reset()
         self._next_due_ns = None
+        with self._lock:
+            self._last.result = None
+            self._last.error = ""
+            self._last.window_min = None
 
     def due(self, stamp_ns: int) -> bool:
         """Whether the frame stamped ``stamp_ns`` is to be measured under
         ``dense_max_rate_hz`` (always at 0). Decided by the stamps, so ``owl_process`` and
         the node measure the same frames: the due time advances by one period per measured
         frame (a 30 Hz camera under 20 Hz gives gaps of 2 and 1 frames, 20 frames/s), a
-        frame up to a tenth of a period early counts as on time (stamp jitter), and a gap
-        longer than a period starts again from the frame after it."""
+        frame up to a tenth of a period early counts as on time (stamp jitter), a gap
+        longer than a period starts again from the frame after it, and so does a stamp
+        before the last measured one (time went back: a looped bag, a restarted
+        simulation)."""
         rate = self.options.dense_max_rate_hz
         if not rate > 0:
             return True
         period = round(1e9 / rate)
         nxt = self._next_due_ns
-        if nxt is not None and stamp_ns < nxt - period // 10:
+        if nxt is not None and nxt - period <= stamp_ns < nxt - period // 10:
             return False
         base = nxt if nxt is not None and 0 <= stamp_ns - nxt < period else stamp_ns
         self._next_due_ns = base + period
@@ -199,7 +207,13 @@ class DenseStage:
     def record_error(self, text: str) -> None:
         """Say in ``owl: dense`` why a frame gave no dense output."""
         with self._lock:
-            self._last.error = text
+            self._fail(text)
+
+    def _fail(self, text: str) -> None:
+        """A frame gave no dense output (under the lock): the status says why until a
+        frame gives one again, and counts it."""
+        self._last.error = text
+        self._last.errors += 1
 
     def count_dropped(self) -> None:
         """A job was dropped for a newer one (the dense stage fell behind)."""
@@ -223,7 +237,7 @@ class DenseStage:
             pair = dense.take(image, int(result.stamp_ns))
         except OwlError as err:
             with self._lock:
-                self._last.error = f"dense: {err}"
+                self._fail(f"dense: {err}")
             dense.reset()
             return None
         if pair is None or not self.due(pair.stamp_ns):
@@ -266,11 +280,12 @@ class DenseStage:
             )
         except OwlError as err:
             with self._lock:
-                self._last.error = f"dense: {err}"
+                self._fail(f"dense: {err}")
             return None
         with self._lock:
             self._last.frames += 1
             self._last.result = out
+            self._last.error = ""
             ttc = out.ttc
             if ttc is not None and math.isfinite(ttc.seconds):
                 best = self._last.window_min
@@ -290,19 +305,24 @@ class DenseStage:
 
     def status(self) -> StatusRecord:
         """The ``owl: dense`` diagnostic status since the last call: WARN when the shortest
-        time to contact in the path cone went below ``ttc_warn_s`` meanwhile."""
+        time to contact in the path cone went below ``ttc_warn_s`` meanwhile, or when the
+        newest frame gave no dense result (why, and no figures of an older result)."""
         with self._lock:
             last = self._last
             res = last.result
+            error = last.error
             window_min, last.window_min = last.window_min, None
             values: dict[str, object] = {
                 "dense_frames_total": last.frames,
+                "dense_errors_total": last.errors,
                 "ttc_warnings_total": last.warned,
                 "frames_without_gyro_total": last.gyro_missing,
                 "dropped_for_newer_total": last.dropped,
             }
+        if error:
+            return StatusRecord.build("owl: dense", Level.WARN, error, values)
         if res is None:
-            msg = last.error or "no dense result yet (needs two frames while subscribed)"
+            msg = "no dense result yet (needs two frames while subscribed)"
             return StatusRecord.build("owl: dense", Level.OK, msg, values)
         ttc = res.ttc
         shortest = window_min[0] if window_min is not None else math.nan

@@ -98,3 +98,45 @@ def test_dense_outputs_built_only_while_subscribed(
         node.destroy_node()
     finally:
         rclpy.shutdown(context=context)
+
+
+def test_dense_status_says_why_a_frame_gave_nothing_and_shows_no_old_figures(
+    tmp_path: Path,
+) -> None:
+    """``owl: dense`` after a failed frame WARNs with the reason instead of showing the
+    last good frame's time to contact as current; a good frame clears it; a reset (nobody
+    listens) forgets the result."""
+    from owl_ros.dense_outputs import DenseStage
+
+    bag = tmp_path / "street"
+    args = ["street", str(bag), "--seconds", "0.5", "--width", "160", "--height", "120"]
+    assert make_bag.main([*args, "--quiet"]) == 0
+    options = build_options({"dense": True, "dense_width": 80, "dense_height": 60})
+    outs = _outputs(bag, options)
+    stage = DenseStage(options)
+
+    def feed(items: list[tuple[Output, Any, Any]], image: Any = None) -> int:
+        done = 0
+        for out, engine, camera in items:
+            job = stage.begin(engine, camera, out.image if image is None else image, out.result)
+            done += job is not None and stage.finish(job) is not None
+        return done
+
+    assert feed(outs[:4]) == 3
+    good = stage.status()
+    assert good.level.name == "OK" and "ttc_s" in good.value_map()
+    assert feed(outs[4:5], image=outs[4][0].image[:, :100]) == 0  # a cropped image
+    bad = stage.status()
+    assert bad.level.name == "WARN" and "dense image must be a (120, 160)" in bad.message
+    values = bad.value_map()
+    assert "ttc_s" not in values and "confident_fraction" not in values
+    assert int(values["dense_errors_total"]) == 1
+    # the bad image dropped the kept ones: the second good frame after it measures again
+    assert feed(outs[5:7]) == 1
+    again = stage.status()
+    assert again.level.name == "OK" and "ttc_s" in again.value_map()
+    assert int(again.value_map()["dense_errors_total"]) == 1
+    stage.reset()
+    gone = stage.status()
+    assert gone.level.name == "OK" and gone.message.startswith("no dense result yet")
+    assert "ttc_s" not in gone.value_map()
