@@ -56,6 +56,9 @@ class Counters:
         reconfigured, camera_changed, bad_camera_info: engine rebuilds for new options or
             a new calibration; camera_info messages rejected.
         qos_events: QoS incompatibilities reported.
+        worker_errors: exceptions the node's worker thread survived outside the engine
+            (handing over an input, publishing a frame's outputs, the debug image, the dense
+            hand-off, the diagnostics): that frame's outputs may be incomplete.
     """
 
     images: int = 0
@@ -89,6 +92,7 @@ class Counters:
     camera_changed: int = 0
     bad_camera_info: int = 0
     qos_events: int = 0
+    worker_errors: int = 0
 
     def count_skip(self, skip: Skip) -> None:
         """One frame skipped for ``skip``."""

@@ -516,8 +516,10 @@ class OwlNode(Node):
 
     def _worker_error(self, where: str, err: Exception) -> None:
         """Log an exception the worker survived (at most once a second: a message that
-        fails every frame must not flood the log)."""
-        self.get_logger().error(f"{where}: {type(err).__name__}: {err}", throttle_duration_sec=1.0)
+        fails every frame must not flood the log) and say it in ``owl: processing``."""
+        text = f"{where}: {type(err).__name__}: {err}"
+        self._pipeline.record_worker_error(text)
+        self.get_logger().error(text, throttle_duration_sec=1.0)
 
     def _on_options(self, options: NodeOptions) -> None:
         """An option change reached the worker: the dense stage follows it too."""

@@ -132,6 +132,7 @@ class _Notes:
     bad_image: str = ""
     imu_problem: str = ""
     jump: str = ""
+    worker_error: str = ""
     qos_events: list[str] = field(default_factory=list)
     image_bytes: int = 0  # size of the newest image message's data
 
@@ -495,6 +496,12 @@ class Pipeline:
             return None
         return self._process(frame, frame.stamp_ns, probe.covered)
 
+    def record_worker_error(self, text: str) -> None:
+        """An exception the node's worker survived outside the engine (``text``: where,
+        its type and message): counted, and said in ``owl: processing``."""
+        self.totals.worker_errors += 1
+        self._notes.worker_error = text
+
     def _skip(self, skip: Skip, reason: str) -> None:
         self.totals.count_skip(skip)
         self._notes.empty_reason = reason
@@ -666,6 +673,7 @@ class Pipeline:
             last_imu_problem=notes.imu_problem,
             last_empty_reason=notes.empty_reason,
             last_jump=notes.jump,
+            last_worker_error=notes.worker_error,
             qos_events=tuple(notes.qos_events),
             image_bytes=notes.image_bytes,
             heading_sigma_rad=result.heading_sigma_rad if result is not None else math.nan,

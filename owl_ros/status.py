@@ -50,8 +50,8 @@ class StatusInputs:
         camera_known: a valid camera_info has been received.
         camera_error: why the last camera_info was rejected, or None.
         wrong_type: one text per input-topic publisher of the wrong message type.
-        last_bad_image, last_imu_problem, last_empty_reason, last_jump: the newest text of
-            each kind ("" for none).
+        last_bad_image, last_imu_problem, last_empty_reason, last_jump, last_worker_error:
+            the newest text of each kind ("" for none).
         qos_events: QoS event texts, oldest first.
         image_bytes: size of the newest image message's data, bytes (0 before one).
         heading_sigma_rad: the last result's heading sigma, rad (NaN without a result).
@@ -80,6 +80,7 @@ class StatusInputs:
     last_imu_problem: str = ""
     last_empty_reason: str = ""
     last_jump: str = ""
+    last_worker_error: str = ""
     qos_events: Sequence[str] = ()
     image_bytes: int = 0
     heading_sigma_rad: float = math.nan
@@ -192,6 +193,8 @@ def _processing_message(s: StatusInputs) -> tuple[Level, str]:
     level = Level.OK
     if c.processed == 0 or c.frames_with_points == 0 or dropped or c.time_jumps:
         level = Level.WARN
+    if c.worker_errors:
+        level = Level.ERROR
     if c.processed == 0:
         if c.images == 0 and s.totals.images:  # the camera (or a replay) stopped
             message = (
@@ -220,6 +223,8 @@ def _processing_message(s: StatusInputs) -> tuple[Level, str]:
             )
     if c.time_jumps:
         message += f"; time jump: {s.last_jump}"
+    if c.worker_errors:
+        message += f"; {c.worker_errors} worker errors, the last: {s.last_worker_error}"
     return level, message
 
 
@@ -254,6 +259,8 @@ def processing_status(s: StatusInputs) -> StatusRecord:
             "time_jumps_total": t.time_jumps,
             "last_time_jump": s.last_jump,
             "last_empty_reason": s.last_empty_reason,
+            "worker_errors_total": t.worker_errors,
+            "last_worker_error": s.last_worker_error,
             "heading_sigma_deg": math.degrees(s.heading_sigma_rad),
             "queue_size": s.queue_size,
         },

@@ -19,6 +19,7 @@ from geometry_msgs.msg import TwistStamped
 from bags.sim import scenarios
 from bags.sim.scenarios import CAMERA_FRAME, IMU_FRAME, SimOptions
 from msg_adapters.camera_info import camera_model_to_info
+from msg_adapters.diagnostics import Level
 from msg_adapters.image import array_to_image
 from msg_adapters.imu import gyro_to_imus
 from msg_adapters.pointcloud import OWL_FIELDS, cloud_speed, cloud_to_array
@@ -739,3 +740,23 @@ def test_imu_batches_equal_single_messages(feed: Feed) -> None:
     ]
     for key in ("imu", "imu_non_finite", "imu_duplicate"):
         assert getattr(batched.totals, key) == getattr(single.totals, key) > 0
+
+
+def test_a_worker_error_is_an_error_of_its_window_and_a_total() -> None:
+    """An exception the node's worker survived outside the engine (publishing a frame's
+    outputs, the dense hand-off) is said in ``owl: processing``: ERROR in the window it
+    happened, with the newest text, and counted since start."""
+    pipeline = make(build_options({}))
+    at(pipeline, 1_000_000_000).start_window()
+    pipeline.record_worker_error("worker: ValueError: a broken message")
+    pipeline.record_worker_error("worker: KeyError: 'x'")
+    at(pipeline, 2_000_000_000)
+    recs = {r.name: r for r in pipeline.diagnostics()}
+    rec = recs["owl: processing"]
+    assert rec.level == Level.ERROR
+    assert rec.message.endswith("; 2 worker errors, the last: worker: KeyError: 'x'")
+    assert rec.value_map()["worker_errors_total"] == "2"
+    at(pipeline, 3_000_000_000)
+    rec = {r.name: r for r in pipeline.diagnostics()}["owl: processing"]
+    assert rec.level != Level.ERROR and "worker errors" not in rec.message
+    assert rec.value_map()["worker_errors_total"] == "2"
