@@ -62,6 +62,8 @@ OBSERVE_STRIDE = 3
 #: 1-sigma of the prior on the leftover rotation in the offset filter's own heading fit
 #: (wide: the leftover of a 50 ms offset at 3 rad/s^2 is 0.15 rad/s), rad/s.
 _OFFSET_LEFTOVER_PRIOR = 0.5
+#: Neighbours each track is compared with for the depth-edge weights (besides itself).
+_EDGE_NEIGHBOURS = 8
 
 
 @dataclass(frozen=True)
@@ -657,6 +659,10 @@ class OwlEngine:
         self._clock: Callable[[], float] = time.perf_counter
         self._rng = np.random.default_rng(opts.seed)
         self._state = _MotionState()
+        # this frame's image neighbours of its integrated tracks (_pixel_neighbours)
+        self._neighbours_of: tuple[_Integrated, tuple[FloatArray, npt.NDArray[np.intp]]] | None = (
+            None
+        )
         self._heading_filter = hf.TwoModelHeading(opts.heading_filter or None)
         self._speed_filter = sf.TwoModelSpeed(opts.speed_filter)
         self._heading_unconfirmed = replace(opts.heading, confirmed_warm_start=False)
@@ -779,6 +785,7 @@ class OwlEngine:
         """
         self._tracker.reset()
         self._state = _MotionState()
+        self._neighbours_of = None
         self._heading_filter.reset()
         self._speed_filter.reset()
         if not keep_gyro:
@@ -1248,6 +1255,8 @@ class OwlEngine:
                 opts.edge_log_scale,
                 min_sin=opts.heading.min_sin,
                 spread_factor=opts.edge_spread_factor,
+                neighbours=_EDGE_NEIGHBOURS,
+                neighbourhood=self._pixel_neighbours(integ),
             )
         hopts = opts.heading
         flt = self._heading_filter
@@ -1379,6 +1388,27 @@ class OwlEngine:
         )  # fmt: skip
         return out_r, out_rel
 
+    def _pixel_neighbours(self, integ: _Integrated) -> tuple[FloatArray, npt.NDArray[np.intp]]:
+        """The nearest tracks of each of ``integ``'s N tracks in the image (itself first):
+        (N, K) distances, pixels (inf where none), and indices (N where none), for both the
+        depth-edge weights and the local looming rule: one k-d tree query per frame, with
+        the larger of their neighbour counts and radii (each takes its own columns and
+        radius of it), kept for the frame's ``integ``."""
+        cached = self._neighbours_of
+        if cached is not None and cached[0] is integ:
+            return cached[1]
+        opts = self.options
+        n = integ.pixels.shape[0]
+        k = max(min(max(opts.neighbours, _EDGE_NEIGHBOURS) + 1, n), 1)
+        radius = max(opts.neighbour_radius_px, opts.edge_radius_px or 0.0)
+        dist, nb = cKDTree(integ.pixels).query(integ.pixels, k=k, distance_upper_bound=radius)
+        found = (
+            np.asarray(dist, dtype=np.float64).reshape(n, k),
+            np.asarray(nb, dtype=np.intp).reshape(n, k),
+        )
+        self._neighbours_of = (integ, found)
+        return found
+
     def _local_looming(self, integ: _Integrated, f: FloatArray) -> motion.LocalFit | None:
         """The local deformation rule over each feature's pixel neighbours (None when there
         are too few features)."""
@@ -1387,10 +1417,9 @@ class OwlEngine:
         k = min(opts.neighbours, n - 1)
         if k < opts.min_neighbours:
             return None
-        tree = cKDTree(integ.pixels)
-        dist, nb = tree.query(integ.pixels, k=k + 1, distance_upper_bound=opts.neighbour_radius_px)
-        dist, nb = dist[:, 1:], nb[:, 1:]
-        nb_mask = np.isfinite(dist) & (nb < n)
+        dist, nb = self._pixel_neighbours(integ)
+        dist, nb = dist[:, 1 : k + 1], nb[:, 1 : k + 1]
+        nb_mask = (dist < opts.neighbour_radius_px) & (nb < n)
         nb_safe = np.where(nb_mask, nb, 0)
         # neighbours must refer to the same time (tracks of different lengths do not)
         nb_mask &= np.abs(integ.tau_ref[nb_safe] - integ.tau_ref[:, None]) < 1e-4

@@ -536,6 +536,7 @@ def depth_edge_weights(
     neighbours: int = 8,
     min_sin: float = 0.05,
     spread_factor: float = 1.4,
+    neighbourhood: tuple[FloatArray, npt.NDArray[np.intp]] | None = None,
 ) -> FloatArray:
     """Heading-fit weights that set aside tracks near a depth edge.
 
@@ -578,6 +579,11 @@ def depth_edge_weights(
         min_sin: floor of ``|h x e|``.
         spread_factor: the scale follows this many of the frame's neighbour spreads when
             that is larger than ``log_scale`` (0: always ``log_scale``).
+        neighbourhood: the (N, K) distances (pixels, inf beyond the search radius) and
+            indices of the K >= ``neighbours`` + 1 nearest of ``pixels`` to each of them
+            (itself first), searched within at least ``radius_px``: a k-d tree query that
+            another stage already made (its first ``neighbours`` + 1 columns within
+            ``radius_px`` are the query this function makes without it).
 
     Returns:
         (N,) float64 weights in (0, 1].
@@ -610,9 +616,18 @@ def depth_edge_weights(
         measured &= sin > min_sin
         log_q -= np.log(np.maximum(sin, 1e-300))
     k = min(neighbours + 1, n)
-    dist, nb = cKDTree(px).query(px, k=k, distance_upper_bound=radius_px)
+    if neighbourhood is None:
+        dist, nb = cKDTree(px).query(px, k=k, distance_upper_bound=radius_px)
+    else:
+        dist, nb = neighbourhood[0][:, :k], neighbourhood[1][:, :k]
+        if dist.shape != (n, k):
+            raise InvalidInputError(
+                f"neighbourhood must have N = {n} rows and at least {k} columns, got "
+                f"{neighbourhood[0].shape}"
+            )
     itself = np.arange(n)[:, None]
-    nb = np.where(np.isfinite(dist), nb, itself)  # missing: the point itself
+    # missing (none within radius_px, as the query's strict bound): the point itself
+    nb = np.where(dist < radius_px, nb, itself)
     pair = measured[:, None] & measured[nb]
     diff = np.where(pair, np.abs(log_q[nb] - log_q[:, None]), 0.0)
     scale = log_scale

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from owl_core import heading as hd
 from owl_core.errors import InvalidInputError
@@ -458,6 +459,28 @@ def test_depth_edge_weights_scale_follows_noisy_flows() -> None:
         hd.depth_edge_weights(px, e, quiet, 1e-4, H_TRUE, 12.0, 0.1),
         hd.depth_edge_weights(px, e, quiet, 1e-4, H_TRUE, 12.0, 0.1, spread_factor=0.0),
     )
+
+
+def test_depth_edge_weights_from_a_wider_neighbour_query_are_the_same_weights() -> None:
+    """The engine makes one k-d tree query for this and the local looming rule (more
+    neighbours, a larger radius): its first columns within radius_px give the same weights
+    as the function's own query, ties of the regular grid included."""
+    px, e, f = _two_planes()
+    jittered = px + np.random.default_rng(3).uniform(-2.0, 2.0, px.shape)
+    noisy = f * np.exp(np.random.default_rng(4).normal(0.0, 0.1, len(f)))[:, None]
+    for pixels in (px, jittered):
+        wide = cKDTree(pixels).query(pixels, k=12, distance_upper_bound=80.0)
+        for heading in (H_TRUE, None):
+            own = hd.depth_edge_weights(pixels, e, noisy, 1e-4, heading, 12.0, 0.1)
+            shared = hd.depth_edge_weights(
+                pixels, e, noisy, 1e-4, heading, 12.0, 0.1, neighbourhood=wide
+            )
+            assert np.array_equal(own, shared)
+            assert np.any(own < 0.5)  # the edge is there to be found
+    with pytest.raises(InvalidInputError, match="at least 9 columns"):
+        hd.depth_edge_weights(
+            px, e, f, 1e-4, None, 12.0, 0.1, neighbourhood=(wide[0][:, :5], wide[1][:, :5])
+        )
 
 
 def test_depth_edge_weights_ignore_flows_in_the_noise_and_check_inputs() -> None:
