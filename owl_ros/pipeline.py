@@ -242,6 +242,12 @@ class Pipeline:
         return len(self._scheduler.queue)
 
     @property
+    def last_skip_reason(self) -> str:
+        """Why the newest skipped frame was not processed, or why the newest processed frame
+        had no points ("" before either)."""
+        return self._notes.empty_reason
+
+    @property
     def calibration_verdict(self) -> MonitorVerdict | None:
         """The live calibration check's latest verdict (None before enough motion)."""
         return self._calibration.last if self._calibration is not None else None

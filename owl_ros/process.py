@@ -48,6 +48,7 @@ from msg_adapters.diagnostics import records_to_msg
 from msg_adapters.msgtypes import message_class
 from msg_adapters.stamps import header_to_ns
 from owl_core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, so3_log
+from owl_ros.counters import Skip
 from owl_ros.dense_outputs import DenseWriter
 from owl_ros.heap import keep_freed_memory
 from owl_ros.node import heading_marker
@@ -132,8 +133,11 @@ class Summary:
             given), or None.
         calibration_warning: the live calibration check's verdict at the end of the bag
             when it finds images and gyro disagreeing (one line), else None.
-        counts: pipeline totals (drops, skips, IMU problems...).
+        counts: pipeline totals (drops, skips, IMU problems...), and ``undecodable TOPIC``:
+            messages of TOPIC that could not be read.
         reasons: reasons for frames without points, with counts.
+        last_skip_reason: why the newest frame taken but not processed was skipped, or why
+            the newest processed frame had no points ("" for neither).
         damage: one line when the input bag was truncated/corrupt (the readable part was
             processed), else None.
         elapsed_s: wall time, s.
@@ -155,6 +159,7 @@ class Summary:
     reasons: dict[str, int]
     damage: str | None
     elapsed_s: float
+    last_skip_reason: str = ""
 
 
 def tf_rotation(
@@ -480,6 +485,7 @@ def process_bag(
         reasons=dict(run.reasons),
         damage=damage,
         elapsed_s=time.monotonic() - t_start,
+        last_skip_reason=run.pipeline.last_skip_reason,
     )
 
 
@@ -587,7 +593,7 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
         # a parameter file that keeps the default (identity) rotation does not override
         # /tf_static; one that sets another rotation does
         given = values.get("camera_to_imu_rotation_xyzw")
-        rotation_given = given is not None and list(given) != list(
+        rotation_given = given is not None and given != list(
             defaults()["camera_to_imu_rotation_xyzw"]
         )
     for item in args.param:
@@ -625,6 +631,16 @@ def options_from_args(args: argparse.Namespace) -> ProcessOptions:
     )
 
 
+#: frames taken from the queue but not processed: counter key -> what the notes call it
+_SKIPS = {
+    Skip.NO_CAMERA_INFO.value: "no camera_info yet",
+    Skip.BAD_IMAGE.value: "bad image",
+    Skip.DUPLICATE_STAMP.value: "repeated stamp",
+    Skip.OUT_OF_ORDER.value: "stamp out of order",
+    Skip.ENGINE_ERROR.value: "engine error",
+}
+
+
 def summary_notes(summary: Summary, opts: ProcessOptions) -> list[str]:
     """Lines after a run: why frames had no points (counts per reason, one line), what to
     do about a missing IMU, images missing between the recorded stamps, and the identity
@@ -645,6 +661,15 @@ def summary_notes(summary: Summary, opts: ProcessOptions) -> list[str]:
                 f"later in the bag than the next image): keep them waiting with "
                 f"-p queue_size:={max(2 * queue, 4)} (now {queue})"
             )
+    for key, n in sorted(summary.counts.items()):
+        if key.startswith("undecodable ") and n:
+            topic = key.removeprefix("undecodable ")
+            notes.append(f"warning: {n} messages on {topic} could not be read (skipped)")
+    skipped = {k: n for k, n in summary.counts.items() if k in _SKIPS and n}
+    if skipped:
+        text = ", ".join(f"{_SKIPS[k]} {n}" for k, n in sorted(skipped.items()))
+        last = f" (the last: {summary.last_skip_reason})" if summary.last_skip_reason else ""
+        notes.append(f"warning: images not processed: {text}{last}")
     missing = summary.counts.get("images_missing", 0)
     if missing:
         notes.append(
@@ -713,6 +738,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     for line in summary_notes(summary, opts):
         print(f"{PROG}: {line}", file=sys.stderr)
+    if summary.frames_processed == 0:
+        print(
+            f"{PROG}: error: no frame processed of the {summary.images} images on "
+            f"{opts.image_topic} (the output {summary.out_path} holds the diagnostics)",
+            file=sys.stderr,
+        )
+        return 1
     if not args.quiet:
         print(
             f"{PROG}: wrote {summary.out_path}: {summary.frames_processed} frames, "

@@ -266,6 +266,7 @@ def test_cli_runs_with_params_file(
         (["{bag}", "-o", "{out}", "-p", "max_features:=-3"], 2, "parameter max_features"),
         (["{bag}", "-o", "{out}", "--camera-to-imu-rotation-xyzw", "0,0,1"], 2, "4 elements"),
         (["{bag}", "-o", "{bag}"], 1, "the output is the input"),
+        (["{bag}", "-o", "{out}", "--params-file", "{scalar}"], 2, "must be a list of 4"),
     ],
 )
 def test_cli_bad_input_one_line(
@@ -277,7 +278,10 @@ def test_cli_bad_input_one_line(
     expect: str,
 ) -> None:
     (tmp_path / "notbag").mkdir()
+    scalar = tmp_path / "scalar.yaml"  # a rotation written as one number
+    scalar.write_text("owl:\n  ros__parameters:\n    camera_to_imu_rotation_xyzw: 1.0\n")
     subs = {
+        "{scalar}": str(scalar),
         "{missing}": str(tmp_path / "missing"),
         "{notbag}": str(tmp_path / "notbag"),
         "{bag}": str(bag),
@@ -610,3 +614,20 @@ def test_no_time_estimate_from_the_first_messages() -> None:
     assert process.eta_text(0.9, 0.5) == ""
     assert process.eta_text(2.0, 0.5) == ", ~2 s left"
     assert process.eta_text(5.0, 1.0) == ""
+
+
+def test_images_it_could_not_process_are_said_and_none_processed_is_an_error(
+    bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An image topic whose every message is skipped (here the ground-truth range image,
+    32FC1, which the engine cannot take) is not a success of 0 frames: the notes count the
+    skipped images with the last reason, and the exit status is 1 (the output is kept)."""
+    out = tmp_path / "o"
+    args = [str(bag), "-o", str(out), "--image-topic", "/ground_truth/range", "-q"]
+    assert process.main(args) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    skipped = [line for line in err if "images not processed: bad image" in line]
+    assert len(skipped) == 1 and "32FC1" in skipped[0], err
+    assert err[-1].startswith("owl_process: error: no frame processed of the ")
+    assert "on /ground_truth/range" in err[-1]
+    assert out.is_dir()
