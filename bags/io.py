@@ -12,7 +12,8 @@ Reading::
             msg = bag.deserialize(raw)     # rosbags message object
 
 Writing (nothing is left behind if an exception escapes the ``with`` block; the bag is
-built in a hidden sibling directory and renamed into place on success)::
+built in a hidden sibling directory and renamed into place on success; a recorder passes
+``keep_partial=True`` to keep what it wrote when the disk fills)::
 
     with BagWriter("out_bag", overwrite=True) as bag:
         bag.add_topic("/tf_static", "tf2_msgs/msg/TFMessage", qos="latched")
@@ -42,8 +43,10 @@ import struct
 import sys
 import tempfile
 import zlib
+from collections import defaultdict
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from io import BytesIO
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -595,6 +598,20 @@ def _overlap(output: Path, source: Path) -> str | None:
     return None
 
 
+def _bag_dir_of(source: Path) -> Path | None:
+    """The rosbag2 directory that holds ``source`` when it is one of its .mcap files (the
+    directory has metadata.yaml or only rosbag2 files), else None."""
+    try:
+        if source.suffix != ".mcap" or not source.is_file():
+            return None
+        folder = source.resolve().parent
+        if (folder / "metadata.yaml").is_file() or _looks_like_bag_dir(folder):
+            return folder
+    except OSError:  # unreadable: the overlap with the file itself was checked
+        return None
+    return None
+
+
 def check_output(
     output: str | os.PathLike[str],
     inputs: Iterable[str | os.PathLike[str]] = (),
@@ -606,7 +623,8 @@ def check_output(
     The one check every writing tool shares (owl_process, owl_make_bag, owl_record, the
     demo, the result bags of owl_eval/owl_bench): an output that is one of ``inputs``,
     lies inside one or contains one is refused even with ``overwrite`` (replacing it
-    would delete the input); an existing output is refused unless ``overwrite``.
+    would delete the input); an input named by its ``.mcap`` file counts as its bag
+    directory too; an existing output is refused unless ``overwrite``.
 
     Raises:
         OutputOverlapError: the output is, is inside or contains an input.
@@ -618,11 +636,75 @@ def check_output(
         if how is not None:
             msg = f"refusing to write {out}: the output {how} the input {source}"
             raise OutputOverlapError(msg)
+        bag = _bag_dir_of(Path(source))
+        how = None if bag is None else _overlap(out, bag)
+        if how is not None:
+            msg = f"refusing to write {out}: the output {how} the input bag {bag} (of {source})"
+            raise OutputOverlapError(msg)
     if (out.exists() or out.is_symlink()) and not overwrite:
         raise BagExistsError(OVERWRITE_MESSAGE.format(path=out))
 
 
+def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` all at once: into a hidden temporary file in the
+    same directory, then ``os.replace`` onto ``path``, so that an interrupted or failed
+    write leaves the old file (or none) and never a partial one. The temporary file is
+    removed on an error.
+
+    Raises:
+        OSError: the directory cannot be written (permissions, disk full, ...).
+    """
+    out = Path(path)
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    try:
+        with tmp.open("x", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, out)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 _ZSTD_ERRORS = _zstd_errors()
+
+
+def _os_reason(err: BaseException) -> str:
+    """The OS's message of ``err`` ("No space left on device"; the caller names the path)."""
+    if isinstance(err, OSError) and err.strerror:
+        return err.strerror
+    return _one_line(err)
+
+
+def _chunk_extent(index: bytes) -> tuple[int, int, int, dict[int, int]]:
+    """(first and last log time, end offset, messages per channel id) of one written chunk,
+    from its MCAP ChunkIndex record (which the rosbags writer keeps in memory until close).
+
+    The end offset includes the chunk's message index records, one per channel after the
+    chunk record, each 15 bytes of header and 16 bytes a message (rosbags' reader counts
+    the messages the same way).
+    """
+    start, end, offset, length = struct.unpack_from("<QQQQ", index, 0)
+    (size,) = struct.unpack_from("<I", index, 32)
+    at_channel = sorted((at, cid) for cid, at in struct.iter_unpack("<HQ", index[36 : 36 + size]))
+    (index_length,) = struct.unpack_from("<Q", index, 36 + size)
+    chunk_end = offset + length + index_length
+    bounds = [at for at, _ in at_channel[1:]] + [chunk_end]
+    counts = {
+        cid: (nxt - at - 15) // 16 for (at, cid), nxt in zip(at_channel, bounds, strict=True)
+    }
+    return start, end, chunk_end, counts
+
+
+def _close_quietly(storage: Any) -> None:
+    """Close the rosbags MCAP storage's file; what its buffer still held is dropped."""
+    bio = getattr(storage, "bio", None)
+    if bio is not None and not bio.closed:
+        try:
+            bio.close()
+        except (OSError, ValueError):  # the flush failed; the file is closed anyway
+            pass
 
 
 class BagWriter:
@@ -630,7 +712,12 @@ class BagWriter:
 
     The bag is written into a hidden temporary directory next to ``path`` and moved to
     ``path`` when the ``with`` block ends without an exception; on an exception the
-    temporary output is deleted and an existing bag at ``path`` stays untouched.
+    temporary output is deleted and an existing bag at ``path`` stays untouched (with
+    ``overwrite`` it is replaced only once the new bag is complete).
+
+    An OS error creating, writing or closing the output (read-only or full disk, I/O
+    error) raises BagError naming the bag and the OS's message; nothing more is written
+    after it, and the temporary output is deleted unless ``keep_partial``.
 
     Args:
         path: the output rosbag2 directory.
@@ -640,10 +727,18 @@ class BagWriter:
             or contains one is refused, even with ``overwrite`` (see check_output).
         compress: zstd-compress the MCAP chunks (deterministic: the same messages give
             the same bytes); False writes them uncompressed.
+        keep_partial: for recorders, whose messages cannot be written again: what was
+            written is kept. After an OS error ``close()`` (or leaving the ``with`` block)
+            finishes the bag with the messages already on disk (the damaged end of the
+            MCAP is cut off) or, when even that fails, leaves them at ``path`` as an
+            unfinished MCAP that ``BagReader(path, recover=True)`` reads, and raises
+            BagError saying how many messages are where. An exception leaving the
+            ``with`` block after messages were written also finishes the bag.
 
     Raises:
         BagExistsError: ``path`` exists and ``overwrite`` is False, or it is not a bag.
         OutputOverlapError: ``path`` is, is inside or contains one of ``inputs``.
+        BagError: the output cannot be created or written (the OS's message).
     """
 
     def __init__(
@@ -653,20 +748,36 @@ class BagWriter:
         overwrite: bool = False,
         inputs: Iterable[str | os.PathLike[str]] = (),
         compress: bool = True,
+        keep_partial: bool = False,
     ) -> None:
         self.path = Path(path)
         self.overwrite = overwrite
         self.compress = compress
+        self.keep_partial = keep_partial
         self.inputs = tuple(Path(p) for p in inputs)
         self._check_target()
         self._tmpdir: Path | None = None
         self._writer: Writer | None = None
+        self._storage: Any = None  # the rosbags McapWriter of the open bag
+        self._header_end = 0  # where the MCAP's first chunk starts
+        self._failure: str | None = None  # the OS error that stopped writing
         self._conns: dict[str, Any] = {}
         self._types: dict[str, str] = {}
         self._custom: dict[str, str] = {}
         self.count = 0
 
+    def _error(self, err: BaseException) -> BagError:
+        return BagError(f"cannot write bag {self.path}: {_os_reason(err)}")
+
     def _check_target(self) -> None:
+        try:
+            self._check_target_path()
+        except BagError:
+            raise
+        except OSError as err:  # e.g. a name too long, a parent that cannot be read
+            raise self._error(err) from None
+
+    def _check_target_path(self) -> None:
         check_output(self.path, self.inputs, overwrite=True)
         if not self.path.exists() and not self.path.is_symlink():
             if not self.path.parent.is_dir():
@@ -682,17 +793,25 @@ class BagWriter:
     def open(self) -> None:
         """Create the temporary output (called by ``__enter__``)."""
         self._check_target()
-        self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
-        writer = Writer(
-            self._tmpdir / self.path.name,
-            version=METADATA_VERSION,
-            storage_plugin=StoragePlugin.MCAP,
-        )
-        if self.compress:
-            # zstd MCAP chunks ("storage" compression: metadata.yaml stays uncompressed,
-            # as Jazzy's mcap storage plugin writes it with a compression preset)
-            writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        writer.open()
+        try:
+            self._tmpdir = Path(
+                tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent)
+            )
+            writer = Writer(
+                self._tmpdir / self.path.name,
+                version=METADATA_VERSION,
+                storage_plugin=StoragePlugin.MCAP,
+            )
+            if self.compress:
+                # zstd MCAP chunks ("storage" compression: metadata.yaml stays uncompressed,
+                # as Jazzy's mcap storage plugin writes it with a compression preset)
+                writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+            writer.open()
+            self._storage = writer.storage
+            self._header_end = self._storage.bio.tell()
+        except (WriterError, OSError) as err:
+            self._discard()
+            raise self._error(err) from None
         self._writer = writer
 
     def set_custom_data(self, key: str, value: str) -> None:
@@ -731,8 +850,15 @@ class BagWriter:
         if int(stamp_ns) < 0:
             msg = f"negative log time {stamp_ns} ns on topic {topic}"
             raise BagError(msg)
+        if self._failure is not None:  # the MCAP stream is broken: write nothing more
+            msg = f"cannot write bag {self.path}: {self._failure}"
+            raise BagError(msg)
         assert self._writer is not None  # _conn checked it
-        self._writer.write(conn, int(stamp_ns), bytes(data))
+        try:
+            self._writer.write(conn, int(stamp_ns), bytes(data))
+        except OSError as err:
+            self._failure = _os_reason(err)
+            raise self._error(err) from None
         self.count += 1
 
     def write(self, topic: str, stamp_ns: int, msg: object) -> None:
@@ -742,35 +868,180 @@ class BagWriter:
         self.write_raw(topic, stamp_ns, serialize(msg, self._types[topic]))
 
     def close(self) -> None:
-        """Finish the MCAP and metadata.yaml and move the bag to ``path``."""
+        """Finish the MCAP and metadata.yaml and move the bag to ``path``.
+
+        Raises:
+            BagError: the bag cannot be written (with ``keep_partial``: what was kept where).
+        """
         if self._writer is None or self._tmpdir is None:
             return
         writer, self._writer = self._writer, None
         for key, value in self._custom.items():
             writer.set_custom_data(key, value)
+        if self._failure is not None:
+            if self.keep_partial:
+                raise self._keep_written(writer, self._failure)
+            self._abort_writer(writer)
+            self._discard()
+            raise BagError(f"cannot write bag {self.path}: {self._failure}")
+        bag_dir = self._tmpdir / self.path.name
         try:
             writer.close()
-            for mcap_file in (self._tmpdir / self.path.name).glob("*.mcap"):
+            for mcap_file in bag_dir.glob("*.mcap"):
                 fill_checksums(mcap_file)
-            if self.path.exists():
-                self._check_target()
-                shutil.rmtree(self.path)
-            (self._tmpdir / self.path.name).rename(self.path)
-        except (WriterError, OSError) as err:
+            self._move_into_place(bag_dir)
+        except (WriterError, OSError, BagError) as err:
+            if self.keep_partial and self._tmpdir is not None:
+                raise self._keep_written(writer, _os_reason(err)) from None
             self._discard()
-            msg = f"cannot write bag {self.path}: {_one_line(err)}"
-            raise BagError(msg) from None
+            raise err if isinstance(err, BagError) else self._error(err) from None
         self._discard()
+
+    def _move_into_place(self, bag_dir: Path) -> None:
+        """Rename the finished ``bag_dir`` to ``path``. A bag already there (overwrite) is
+        first moved into the temporary directory, deleted with it once the new bag is in
+        place, or moved back if that fails: it is never gone before the new one is there."""
+        assert self._tmpdir is not None
+        previous = None
+        if self.path.exists() or self.path.is_symlink():
+            self._check_target()
+            previous = self._tmpdir / ".previous"
+            self.path.rename(previous)
+        try:
+            bag_dir.rename(self.path)
+        except OSError as err:
+            if previous is not None:
+                try:
+                    previous.rename(self.path)
+                except OSError:
+                    self._tmpdir = None  # it holds the previous bag: keep it
+                    msg = f"cannot write bag {self.path}: {_os_reason(err)}; its previous "
+                    raise BagError(msg + f"content is now in {previous}") from None
+            raise
+
+    def _keep_written(self, writer: Writer, reason: str) -> BagError:
+        """After an OS error of a ``keep_partial`` writer: finish the bag with the chunks
+        already complete on disk (the pending one too if it can still be written), or else
+        cut the MCAP after them and leave it unfinished at ``path``; returns the one-line
+        error that says which, and where."""
+        storage, tmpdir = self._storage, self._tmpdir
+        assert storage is not None and tmpdir is not None
+        bag_dir = tmpdir / self.path.name
+        mcap = Path(storage.path)
+        head = f"cannot write bag {self.path}: {reason}"
+        _close_quietly(storage)
+        try:
+            size = mcap.stat().st_size
+        except OSError:
+            self._tmpdir = None  # leave everything where it is
+            return BagError(f"{head}; what was written is in {bag_dir}")
+        kept: list[tuple[Any, tuple[int, int, int, dict[int, int]]]] = []
+        for index in storage.chunks:
+            extent = _chunk_extent(index.getvalue())
+            if extent[2] > size:
+                break
+            kept.append((index, extent))
+        end = kept[-1][1][2] if kept else self._header_end
+        pending = len(kept) == len(storage.chunks) and storage.chunk.bio.tell() > 0
+        count = -1  # messages in the finished bag (-1: not finished)
+        for with_pending in (True, False) if pending else (False,):
+            count = -1
+            try:
+                count = self._finish_at(writer, mcap, end, kept, with_pending)
+                fill_checksums(mcap)
+                self._move_into_place(bag_dir)
+            except (WriterError, OSError, BagError) as err:
+                _close_quietly(storage)
+                if self._tmpdir is None:  # it holds the previous bag: leave both there
+                    return BagError(f"{err}; the recording is in {bag_dir}")
+                if count < 0:
+                    continue  # not finished: try again without the pending chunk
+                return self._leave(bag_dir, f"{head}; the {count} messages are in the bag")
+            self._discard()
+            return BagError(f"{head}; closed it with the {count} messages written before")
+        try:  # the complete chunks, as an unfinished MCAP
+            os.truncate(mcap, end)
+            for leftover in bag_dir.glob("*.tmp"):
+                leftover.unlink()
+        except OSError:
+            pass
+        count = sum(sum(extent[3].values()) for _, extent in kept)
+        return self._leave(
+            bag_dir,
+            f"{head}; the {count} messages written before it are in the unfinished bag",
+            " (tools that recover damaged bags, e.g. owl_process, read it)",
+        )
+
+    def _finish_at(
+        self,
+        writer: Writer,
+        mcap: Path,
+        end: int,
+        kept: list[tuple[Any, tuple[int, int, int, dict[int, int]]]],
+        with_pending: bool,
+    ) -> int:
+        """Cut the MCAP at ``end`` (after the ``kept`` chunks), set the rosbags writer's
+        state to those chunks (and the pending chunk's messages if ``with_pending``) and
+        close it: summary, footer and metadata.yaml. Returns the number of messages.
+
+        This sets attributes of rosbags' MCAP writer that are not its public API (as of
+        rosbags 0.11.9, the pinned version); the keep_partial tests exercise it."""
+        storage = self._storage
+        _close_quietly(storage)
+        os.truncate(mcap, end)
+        storage.bio = mcap.open("r+b")
+        storage.bio.seek(end)
+        storage.chunks = [index for index, _ in kept]
+        counts = dict.fromkeys(storage.channel_stats, 0)
+        first, last = 2**63 - 1, 0
+        for _, (start, stop, _, chunk_counts) in kept:
+            for cid, n in chunk_counts.items():
+                counts[cid] = counts.get(cid, 0) + n
+            first, last = min(first, start), max(last, stop)
+        chunk = storage.chunk
+        if with_pending:
+            for cid, msgs in chunk.msgs.items():
+                counts[cid] = counts.get(cid, 0) + len(msgs)
+            if any(chunk.msgs.values()):
+                first = min(first, chunk.message_start_time)
+                last = max(last, chunk.message_end_time)
+        else:
+            storage.chunk = type(chunk)(2**63 - 1, 0, BytesIO(), defaultdict(list))
+        storage.channel_stats = dict(counts)
+        storage.message_start_time, storage.message_end_time = first, last
+        writer.counts = dict(counts)
+        writer.min_timestamp, writer.max_timestamp = first, last
+        writer.storage = storage
+        writer.close()
+        return sum(counts.values())
+
+    def _leave(self, bag_dir: Path, text: str, note: str = "") -> BagError:
+        """Keep ``bag_dir`` (at ``path`` if nothing is there) and say where it is."""
+        where = bag_dir
+        if not (self.path.exists() or self.path.is_symlink()):
+            try:
+                bag_dir.rename(self.path)
+                where = self.path
+                if self._tmpdir is not None:
+                    self._tmpdir.rmdir()
+            except OSError:
+                pass
+        self._tmpdir = None
+        return BagError(f"{text} {where}{note}")
 
     def abort(self) -> None:
         """Drop everything written so far (called by ``__exit__`` on an exception)."""
         writer, self._writer = self._writer, None
         if writer is not None:
-            try:
-                writer.abort()
-            except Exception:  # the output is deleted anyway
-                pass
+            self._abort_writer(writer)
         self._discard()
+
+    @staticmethod
+    def _abort_writer(writer: Writer) -> None:
+        try:
+            writer.abort()
+        except Exception:  # the output is deleted anyway
+            pass
 
     def _discard(self) -> None:
         if self._tmpdir is not None:
@@ -789,5 +1060,7 @@ class BagWriter:
     ) -> None:
         if exc_type is None:
             self.close()
+        elif self.keep_partial and (self.count or self._failure is not None):
+            self.close()  # a recording cannot be made again: keep it; the exception goes on
         else:
             self.abort()

@@ -8,6 +8,8 @@
   option and says "expected one argument").
 - :class:`StopRequest`: a SIGINT/SIGTERM handler that only sets a flag, for tools whose
   loops check it between short sleeps and then close their files cleanly.
+- :func:`topic_name_problem`: why rclpy would refuse a topic name (checked up front, so a
+  bad name is one line, not rclpy's InvalidTopicNameException traceback).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any, NoReturn
 
-__all__ = ["OneLineErrorParser", "StopRequest", "user_cache_dir"]
+__all__ = ["OneLineErrorParser", "StopRequest", "topic_name_problem", "user_cache_dir"]
 
 
 #: A comma-separated list of numbers whose first starts with "-" (e.g. -0.5,0.5,-1e-3).
@@ -68,6 +70,20 @@ def join_negative_values(parser: argparse.ArgumentParser, args: Sequence[str]) -
         out.append(item)
         i += 1
     return out
+
+
+def topic_name_problem(name: str) -> str | None:
+    """Why rclpy refuses the fully qualified topic ``name`` (e.g. "topic name must not
+    contain characters other than alphanumerics, '_', or '/'"), or None if it is valid."""
+    from rclpy.exceptions import InvalidTopicNameException
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+
+    try:
+        validate_full_topic_name(name)
+    except InvalidTopicNameException as err:
+        first = str(err).splitlines()[0] if str(err) else "invalid topic name"
+        return first.removeprefix("Invalid topic name: ").rstrip(":")
+    return None
 
 
 def user_cache_dir(name: str) -> Path:

@@ -17,6 +17,11 @@ std_msgs/Header, or whose stamp is negative, fall back to the receive time).
 Ends on SIGINT/SIGTERM, after ``--duration`` seconds or ``--max-messages`` messages;
 the bag is then closed properly (metadata.yaml + a finished .mcap) and per-topic counts
 are printed on stdout. Errors are one line on stderr with a non-zero exit.
+
+A write error (disk full, read-only, I/O error) stops the recording: what was written is
+kept (the bag closed with the messages already on disk, or, if even that fails, left as an
+unfinished MCAP at OUT_BAG that owl_process and ``BagReader(recover=True)`` read), and the
+one error line says which (exit status 1).
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, TextIO
 
-from bags.cli import StopRequest
+from bags.cli import StopRequest, topic_name_problem
 from bags.cli.replay import split_ros_args
 from bags.errors import BagError
 from bags.io import BagWriter
@@ -111,6 +116,9 @@ def parse_options(argv: Sequence[str]) -> RecordOptions:
         if not name or any(c.isspace() for c in name) or name.endswith("/"):
             raise RecordError(f"invalid topic name {name!r}")
         full = name if name.startswith("/") else "/" + name
+        problem = topic_name_problem(full)
+        if problem is not None:  # no publisher could ever appear on it
+            raise RecordError(f"invalid topic name {name!r}: {problem}")
         if full in topics:
             raise RecordError(f"topic {full} given twice")
         topics.append(full)
@@ -179,6 +187,8 @@ class Recorder:
         self.subscriptions: dict[str, Any] = {}
         self.reported_missing = False
         self.total = 0
+        #: the error that stopped the recording (the bag cannot be written), else None
+        self.failure: BagError | None = None
 
     def discover(self) -> None:
         """Subscribe to every requested topic that now has a publisher."""
@@ -236,7 +246,13 @@ class Recorder:
             header = header_stamp_ns(data)
             if header is not None and header >= 0:
                 stamp = header
-        self.writer.write_raw(topic, stamp, data)
+        if self.failure is not None:
+            return
+        try:
+            self.writer.write_raw(topic, stamp, data)
+        except BagError as err:  # e.g. disk full: stop; closing the bag keeps what was written
+            self.failure = err
+            return
         self.counts[topic] += 1
         self.total += 1
 
@@ -253,14 +269,16 @@ def record(
     """Record until a signal, the duration or the message limit; returns per-topic counts.
 
     Raises:
-        BagError: the output exists (without overwrite) or cannot be written.
+        BagError: the output exists (without overwrite) or cannot be written (what was
+            recorded before a write error is kept; the message says where).
     """
     import rclpy
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    writer = BagWriter(opts.out, overwrite=opts.overwrite)  # refuses an existing path early
+    # refuses an existing path early; keep_partial: a write error keeps what was recorded
+    writer = BagWriter(opts.out, overwrite=opts.overwrite, keep_partial=True)
     stop = StopRequest()
     old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     context = Context()
@@ -278,7 +296,7 @@ def record(
             recorder.say(f"recording to {opts.out}: {', '.join(opts.topics)}")
             next_discovery = start
             last_progress = start
-            while not stop.requested:
+            while not stop.requested and recorder.failure is None:
                 now = time.monotonic()
                 if now >= next_discovery:
                     recorder.discover()
@@ -296,12 +314,16 @@ def record(
                     stream.flush()
             if not opts.quiet and stream.isatty():
                 stream.write("\n")
-            _drain(executor, recorder)
+            if recorder.failure is None:
+                _drain(executor, recorder)
             # leave the with block normally: BagWriter.close() finishes the MCAP and metadata
+            # (after a write error it keeps what was written and raises BagError saying so)
             for sub in recorder.subscriptions.values():
                 if sub is not None:
                     node.destroy_subscription(sub)
-            return dict(recorder.counts)
+        if recorder.failure is not None:
+            raise recorder.failure
+        return dict(recorder.counts)
     finally:
         if node is not None:
             node.destroy_node()

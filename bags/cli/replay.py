@@ -37,7 +37,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, TextIO
 
-from bags.cli import StopRequest
+from bags.cli import StopRequest, topic_name_problem
 from bags.dds import prefer_large_image_profile
 from bags.errors import BagError
 from bags.io import BagReader, TopicInfo
@@ -155,7 +155,11 @@ def _parser() -> argparse.ArgumentParser:
 def _topic_name(name: str, what: str) -> str:
     if not name or any(c.isspace() for c in name):
         raise ReplayError(f"invalid {what} topic name {name!r}")
-    return name if name.startswith("/") else "/" + name
+    full = name if name.startswith("/") else "/" + name
+    problem = topic_name_problem(full)
+    if problem is not None:  # rclpy would refuse it when creating the publisher
+        raise ReplayError(f"invalid {what} topic name {name!r}: {problem}")
+    return full
 
 
 def parse_options(argv: Sequence[str]) -> ReplayOptions:

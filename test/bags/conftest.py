@@ -2,10 +2,15 @@
 
 Every bag written in a test is read back with rosbags (through bags.io) AND with this
 reader, so a bag that only rosbags understands would fail.
+
+Also ``limited_run``: a tool run in a child process whose files cannot grow past a size,
+so that its writes fail for real (EFBIG) as on a full disk.
 """
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,3 +75,34 @@ def read_with_mcap(path: Path) -> list[McapMessage]:
 def mcap_read() -> Callable[[Path], list[McapMessage]]:
     """The independent MCAP reader as a fixture (see read_with_mcap)."""
     return read_with_mcap
+
+
+#: Runs argv[1:] with RLIMIT_FSIZE = argv[0] bytes and SIGXFSZ ignored (both survive exec).
+_LIMIT_FILES = (
+    "import os, resource, signal, sys\n"
+    "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+    "limit = int(sys.argv[1])\n"
+    "resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))\n"
+    "os.execv(sys.argv[2], sys.argv[2:])\n"
+)
+
+
+def file_size_limited(
+    argv: list[str], limit: int, **kw: Any
+) -> subprocess.CompletedProcess | subprocess.Popen:
+    """Run ``python *argv`` where no file can grow past ``limit`` bytes: a write beyond it
+    fails with OSError EFBIG ("File too large"), as a write to a full disk fails with
+    ENOSPC, without a small filesystem to mount. ``popen=True`` starts it (stdout and
+    stderr piped, text) instead of waiting for it."""
+    cmd = [sys.executable, "-c", _LIMIT_FILES, str(limit), sys.executable, *argv]
+    if kw.pop("popen", False):
+        return subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw
+        )
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=60, **kw)
+
+
+@pytest.fixture
+def limited_run() -> Callable[..., Any]:
+    """:func:`file_size_limited` as a fixture."""
+    return file_size_limited

@@ -3,7 +3,11 @@ one-line errors for missing, non-bag, truncated and existing paths."""
 
 from __future__ import annotations
 
+import contextlib
+import os
 import shutil
+import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +23,7 @@ from bags.errors import (
     CorruptBagError,
     NotABagError,
 )
-from bags.io import BagReader, BagWriter, RawMessage, typestore
+from bags.io import BagReader, BagWriter, RawMessage, typestore, write_text_atomic
 
 TS = typestore()
 Time = TS.types["builtin_interfaces/msg/Time"]
@@ -390,3 +394,148 @@ def test_chunks_are_zstd_compressed_with_checksums(tmp_path: Path, mcap_read) ->
         assert bag.topics["/imu/data"].count == 2000
     (tmp_path / "again").mkdir()  # the same name (it is in the metadata), same bytes
     assert write(tmp_path / "again" / "z", True).read_bytes() == small.read_bytes()
+
+
+def test_output_inside_the_bag_of_an_mcap_input_is_refused(tmp_path: Path) -> None:
+    from bags.errors import OutputOverlapError
+    from bags.io import check_output
+
+    bag = tmp_path / "b1"
+    _write_sample(bag)
+    mcap = next(bag.glob("*.mcap"))
+    for out in (bag / "res", bag / "sub" / ".." / "res2"):  # inside the bag of the file
+        with pytest.raises(OutputOverlapError, match=f"is inside the input bag {bag} \\(of "):
+            check_output(out, [mcap], overwrite=True)
+        with pytest.raises(OutputOverlapError, match="input bag"):
+            BagWriter(out, overwrite=True, inputs=[mcap])
+    assert sorted(p.name for p in bag.iterdir()) == ["b1.mcap", "metadata.yaml"]
+    BagWriter(tmp_path / "res", inputs=[mcap])  # next to the bag: fine
+    # a bare .mcap in an ordinary folder: an output next to it is fine
+    loose = tmp_path / "loose"
+    loose.mkdir()
+    shutil.copy(mcap, loose / "rec.mcap")
+    (loose / "notes.txt").write_text("x")
+    check_output(loose / "res", [loose / "rec.mcap"])
+
+
+@contextlib.contextmanager
+def _unwritable(folder: Path) -> Iterator[None]:
+    """``folder`` made unwritable for real: its mode for a normal user; root ignores the
+    mode, so then the immutable attribute (chattr +i, on ext4/xfs/btrfs), or skip."""
+    if os.geteuid() != 0:
+        folder.chmod(0o555)
+        try:
+            yield
+        finally:
+            folder.chmod(0o755)
+        return
+    chattr = shutil.which("chattr")
+    if chattr is None or subprocess.run([chattr, "+i", str(folder)], check=False).returncode:
+        pytest.skip("running as root and chattr +i is not possible here")
+    try:
+        yield
+    finally:
+        subprocess.run([chattr, "-i", str(folder)], check=True)
+
+
+def test_unwritable_output_directory_is_a_one_line_bag_error(tmp_path: Path) -> None:
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    with _unwritable(folder):
+        writer = BagWriter(folder / "out")
+        with pytest.raises(BagError, match=f"^cannot write bag {folder / 'out'}: [A-Z]") as err:
+            with writer:
+                pass
+        assert "\n" not in str(err.value) and not isinstance(err.value, OSError)
+        assert list(folder.iterdir()) == []
+
+
+#: A bag of 100 kB notes written in a child process (see the limited_run fixture):
+#: argv = out, number of notes, "keep" (keep_partial) or "drop".
+_NOTES_WRITER = """
+import sys
+from bags.errors import BagError
+from bags.io import BagWriter, typestore
+String = typestore().types["std_msgs/msg/String"]
+out, count, keep = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "keep"
+try:
+    with BagWriter(out, overwrite=True, compress=False, keep_partial=keep) as bag:
+        bag.add_topic("/note", "std_msgs/msg/String")
+        for i in range(count):
+            bag.write("/note", 1000 + i, String(data=f"{i:06d}" + "x" * 99_994))
+except BagError as err:
+    print(err)
+    sys.exit(1)
+"""
+
+
+def _note_texts(path: Path, recover: bool = False) -> list[str]:
+    with BagReader(path, recover=recover) as bag:
+        return [bag.deserialize(raw).data[:6] for raw in bag.messages()]
+
+
+def _chunk_ends(mcap: Path) -> list[int]:
+    """Where each chunk's records (the chunk and its message indexes) end in ``mcap``."""
+    data = mcap.read_bytes()
+    ends: list[int] = []
+    pos, in_chunk = 8, False
+    while pos + 9 <= len(data):
+        op = data[pos]
+        if in_chunk and op != 0x07:  # not a message index: the previous chunk ends here
+            ends.append(pos)
+        in_chunk = op == 0x06 or (in_chunk and op == 0x07)
+        if op == 0x0F:  # DataEnd
+            break
+        pos += 9 + int.from_bytes(data[pos + 1 : pos + 9], "little")
+    return ends
+
+
+@pytest.mark.parametrize("finishable", [True, False])
+def test_write_error_keep_partial_keeps_what_was_written(
+    tmp_path: Path, limited_run, finishable: bool
+) -> None:
+    reference = tmp_path / "reference"
+    assert limited_run(["-c", _NOTES_WRITER, str(reference), "30", "keep"], 2**30).returncode == 0
+    first_end = _chunk_ends(next(reference.glob("*.mcap")))[0]
+    # files cannot grow past the first chunk + room: the second chunk's write fails (EFBIG)
+    # and, with 40 bytes of room, closing the bag after the first chunk fails too
+    out = tmp_path / "rec"
+    room = 65536 if finishable else 40
+    res = limited_run(["-c", _NOTES_WRITER, str(out), "30", "keep"], first_end + room)
+    assert res.returncode == 1 and "Traceback" not in res.stderr, res.stderr
+    (line,) = res.stdout.splitlines()
+    assert line.startswith(f"cannot write bag {out}: File too large; ")
+    kept = _note_texts(out, recover=True)  # the first chunk's notes, in order
+    assert kept == [f"{i:06d}" for i in range(len(kept))] and 1 <= len(kept) < 30
+    if finishable:
+        assert line.endswith(f"closed it with the {len(kept)} messages written before")
+        assert (out / "metadata.yaml").is_file()
+        assert _note_texts(out) == kept  # a finished bag: no recovery needed
+    else:
+        unfinished = f"the {len(kept)} messages written before it are in the unfinished bag"
+        assert f"{unfinished} {out} " in line
+        assert not (out / "metadata.yaml").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec", "reference"]
+
+
+def test_write_error_deletes_only_the_temporary_output(tmp_path: Path, limited_run) -> None:
+    out = tmp_path / "bag"
+    previous = _write_sample(out)
+    res = limited_run(["-c", _NOTES_WRITER, str(out), "30", "drop"], 300_000)
+    assert res.returncode == 1 and "Traceback" not in res.stderr, res.stderr
+    assert res.stdout.strip() == f"cannot write bag {out}: File too large"
+    assert [p.name for p in tmp_path.iterdir()] == ["bag"]  # no temporary left
+    with BagReader(out) as bag:  # the bag it would have replaced is untouched
+        assert list(bag.messages()) == previous
+
+
+def test_write_text_atomic_replaces_whole_or_not_at_all(tmp_path: Path) -> None:
+    out = tmp_path / "calib.yaml"
+    out.write_text("old\n")
+    write_text_atomic(out, "new\n")
+    assert out.read_text() == "new\n"
+    # a write that fails half way (a character UTF-8 cannot encode) keeps the old file
+    with pytest.raises(UnicodeEncodeError):
+        write_text_atomic(out, "partial " + "\ud800")
+    assert out.read_text() == "new\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calib.yaml"]  # no temporary left

@@ -174,6 +174,17 @@ def test_bad_input_one_line_nothing_written(tmp_path: Path, capsys) -> None:
     assert [p.name for p in tmp_path.iterdir()] == ["bag"]  # no temporary left
 
 
+def test_write_error_one_line_and_no_temporary_left(tmp_path: Path, limited_run) -> None:
+    # files cannot grow past 100 kB: the first MCAP chunk (1 MiB of messages) written
+    # while rendering fails with EFBIG, as it fails with ENOSPC on a full disk
+    out = tmp_path / "bag"
+    size = ["--width", "320", "--height", "240"]  # 3 images of 75-300 kB a frame
+    res = limited_run(["-m", "bags.cli.make_bag", "cube", str(out), *ARGS, *size], 100_000)
+    assert res.returncode == 1
+    assert res.stderr.strip() == f"owl_make_bag: error: cannot write bag {out}: File too large"
+    assert list(tmp_path.iterdir()) == []  # the temporary output is removed
+
+
 def test_rolling_shutter_option_renders_rows_at_their_times(tmp_path: Path) -> None:
     out = tmp_path / "rs"
     assert main(["brisk", str(out), *ARGS, "--rolling-shutter-readout", "0.03"]) == 0

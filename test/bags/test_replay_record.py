@@ -166,6 +166,8 @@ def _one_error_line(stderr: str, *needles: str) -> None:
         (["b", "--remap", "/a=/b"], "FROM:=TO, got '/a=/b'"),
         (["b", "--start-delay", "-2"], "got -2.0"),
         (["b", "--qos-depth", "0"], "got 0"),
+        (["b", "--remap", "/imu/data:=/imu-data"], "invalid --remap topic name '/imu-data': "),
+        (["b", "--remap", "/a:=/b//c"], "must not contain repeated '/'"),
     ],
 )
 def test_replay_option_errors(argv, match):
@@ -201,6 +203,7 @@ def test_split_ros_args_keeps_our_remap():
         (["out", "/a", "--duration", "0"], "--duration must be > 0 seconds, got 0.0"),
         (["out", "/a", "--max-messages", "0"], "got 0"),
         (["out", "bad name"], "invalid topic name 'bad name'"),
+        (["out", "/imu-data"], "invalid topic name '/imu-data': topic name must not contain"),
     ],
 )
 def test_record_option_errors(argv, match):
@@ -253,6 +256,14 @@ def test_replay_bad_option_and_unknown_topic(tmp_path):
     res = _run_cli("bags.cli.replay", str(bag), "--topics", "/nope")
     assert res.returncode == 1
     _one_error_line(res.stderr, "topic /nope is not in bag")
+
+
+def test_replay_invalid_remap_target_one_line(tmp_path):
+    bag = tmp_path / "bag"
+    _write_bag(bag, seconds=0.1, tf_static=False)
+    res = _run_cli("bags.cli.replay", str(bag), "--remap", "/imu/data:=/imu-data")
+    assert res.returncode == 2
+    _one_error_line(res.stderr, "owl_replay: error: invalid --remap topic name '/imu-data'")
 
 
 def test_record_refuses_existing_output(tmp_path):
@@ -417,3 +428,57 @@ def test_subscription_qos_matches_each_publisher(ros_domain_env):
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+@pytest.mark.dds
+def test_record_write_error_keeps_what_was_recorded(tmp_path, ros_domain_env, limited_run):
+    """Files cannot grow past 2 MiB (RLIMIT_FSIZE: writes beyond fail with EFBIG, as on a
+    full disk): the recorder stops at the failed write, closes the bag with what is on
+    disk and says so in one line."""
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    out = tmp_path / "rec"
+    argv = ["-m", "bags.cli.record", str(out), "/cam", "-q"]
+    rec = limited_run(argv, 2 * 2**20, popen=True, env=ros_domain_env)
+    rng = np.random.default_rng(1)
+    sent = []
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(ros_domain_env["ROS_DOMAIN_ID"]))
+    try:
+        node = rclpy.create_node("cam", context=ctx)
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        pub = node.create_publisher(Image, "/cam", qos)
+        deadline = time.monotonic() + 10
+        while pub.get_subscription_count() < 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.3)  # the recorder's reader matches this writer
+        # 300 kB images (incompressible): the 2nd MCAP chunk (past 2 MiB) cannot be written
+        for i in range(40):
+            if rec.poll() is not None:
+                break
+            img = rng.integers(0, 256, (480, 640), dtype=np.uint8)
+            msg = array_to_image(img, "mono8", make_header(START_NS + i * 10**8, "cam"))
+            pub.publish(msg)
+            sent.append(img.tobytes())
+            time.sleep(0.05)
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    try:
+        stdout, stderr = rec.communicate(timeout=30)
+    finally:
+        rec.kill()  # if it did not stop by itself (no-op once it has exited)
+    assert rec.returncode == 1, stderr
+    assert stdout == ""
+    _one_error_line(stderr, f"owl_record: error: cannot write bag {out}: File too large; closed")
+    with BagReader(out) as bag:  # a finished bag: read without recovery
+        got = [bag.deserialize(raw) for raw in bag.messages()]
+    assert 1 <= len(got) < len(sent)
+    assert f"closed it with the {len(got)} messages written before" in stderr
+    # the first images, in order (rclpy leaves CDR padding bytes undefined: compare fields)
+    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in got]
+    assert stamps == [START_NS + i * 10**8 for i in range(len(got))]
+    assert [bytes(m.data) for m in got] == sent[: len(got)]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec"]
