@@ -5,9 +5,12 @@ frame is aligned with the integrated gyro (``owl_core.calibration``). Reads the 
 (raw or compressed), camera_info and IMU topics; prints the parameter lines with their
 1-sigma uncertainties, and with ``-o FILE`` writes a ROS 2 parameter file for node
 ``owl`` in any namespace (``/**: ros__parameters: ...``) usable with ``--params-file``
-by ``owl_node`` and ``owl_process``. When the bag has ``/tf_static``, also prints the
-angle between its camera-IMU rotation and the estimate. A recording whose rotation does
-not excite two axes is refused in one line (exit 3) that says what motion to record.
+by ``owl_node`` and ``owl_process`` (checked before calibrating: an existing file only
+with ``--overwrite``, never the input bag or a file inside it, in an existing directory;
+written all at once, see :func:`bags.io.write_text_atomic`). When the bag has
+``/tf_static``, also prints the angle between its camera-IMU rotation and the estimate. A
+recording whose rotation does not excite two axes is refused in one line (exit 3) that
+says what motion to record.
 
 Exit status: 0 done, 1 bad bag / calibration impossible, 2 bad command line,
 3 not excited (record again).
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -28,8 +32,9 @@ import numpy as np
 
 from bags.cli import OneLineErrorParser
 from bags.errors import BagError
-from bags.io import BagReader
+from bags.io import BagReader, check_output, write_text_atomic
 from msg_adapters.camera_info import camera_info_to_model
+from msg_adapters.errors import AdapterError
 from msg_adapters.image import compressed_to_frame, image_to_frame
 from msg_adapters.imu import imus_to_gyro
 from owl_core import calibration as cal
@@ -37,7 +42,8 @@ from owl_core.camera import CameraModel
 from owl_core.errors import OwlError
 from owl_core.geometry import quat_xyzw_to_matrix, so3_log
 from owl_core.types import GyroSamples, ImageFrame
-from owl_ros.process import TF_STATIC, ProcessOptions, tf_rotation
+from owl_ros.process import ROLE_TYPES, TF_STATIC, ProcessOptions, tf_rotation
+from owl_ros.roles import Role
 
 PROG = "owl_calibrate"
 
@@ -71,11 +77,16 @@ class BagCalibration:
 def _read(
     path: str | Path, image_topic: str, info_topic: str, imu_topic: str
 ) -> tuple[list[ImageFrame], CameraModel, GyroSamples, tuple[float, ...] | None]:
-    """Decode the bag's images, camera model, gyro samples and /tf_static rotation."""
+    """Decode the bag's images, camera model, gyro samples and /tf_static rotation.
+
+    Each topic's message type is checked before anything is read (image: Image or
+    CompressedImage, camera_info: CameraInfo, imu: Imu); a message the adapters refuse
+    (e.g. an unsupported image encoding) is a CalibrateError naming its topic.
+    """
     with BagReader(path) as bag:
         topics = bag.topics
         have = ", ".join(sorted(topics)) or "no topics"
-        for role, topic in (("image", image_topic), ("camera_info", info_topic)):
+        for role, topic in ((Role.IMAGE, image_topic), (Role.CAMERA_INFO, info_topic)):
             if topic not in topics:
                 raise CalibrateError(f"{role} topic {topic} is not in bag {path} (has: {have})")
         if imu_topic not in topics:
@@ -83,6 +94,14 @@ def _read(
                 f"imu topic {imu_topic} is not in bag {path} (has: {have}): owl_calibrate "
                 "needs the gyro"
             )
+        roles = {Role.IMAGE: image_topic, Role.CAMERA_INFO: info_topic, Role.IMU: imu_topic}
+        for role, topic in roles.items():
+            msgtype = topics[topic].msgtype
+            if msgtype not in ROLE_TYPES[role]:
+                raise CalibrateError(
+                    f"{role} topic {topic} has type {msgtype}, expected "
+                    f"{' or '.join(ROLE_TYPES[role])}"
+                )
         compressed = topics[image_topic].msgtype.endswith("CompressedImage")
         read = [image_topic, info_topic, imu_topic]
         if TF_STATIC in topics:
@@ -102,12 +121,18 @@ def _read(
                 imus.append(msg)
             elif raw.topic == info_topic:
                 if camera is None:
-                    camera = camera_info_to_model(msg)
+                    try:
+                        camera = camera_info_to_model(msg)
+                    except AdapterError as err:
+                        raise CalibrateError(f"camera_info topic {info_topic}: {err}") from None
                     camera_frame = msg.header.frame_id
             elif raw.topic == TF_STATIC:
                 transforms.extend(msg.transforms)
             else:
-                frame = compressed_to_frame(msg) if compressed else image_to_frame(msg)
+                try:
+                    frame = compressed_to_frame(msg) if compressed else image_to_frame(msg)
+                except AdapterError as err:
+                    raise CalibrateError(f"image topic {image_topic}: {err}") from None
                 if frame.stamp_ns > last:  # repeated or backwards stamps are skipped
                     frames.append(frame)
                     last = frame.stamp_ns
@@ -115,8 +140,12 @@ def _read(
         raise CalibrateError(f"camera_info topic {info_topic} has no messages")
     if len(imus) < 2:
         raise CalibrateError(f"imu topic {imu_topic} has {len(imus)} messages (need >= 2)")
+    try:
+        gyro = imus_to_gyro(imus)
+    except AdapterError as err:
+        raise CalibrateError(f"imu topic {imu_topic}: {err}") from None
     tf = tf_rotation(transforms, imu_frame, camera_frame) if transforms else None
-    return frames, camera, imus_to_gyro(imus), tf
+    return frames, camera, gyro, tf
 
 
 def calibrate_bag(
@@ -129,7 +158,8 @@ def calibrate_bag(
     """Estimate the camera-IMU rotation, time offset and gyro bias of a bag.
 
     Raises:
-        BagError: not a bag. CalibrateError: a topic missing or empty.
+        BagError: not a bag. CalibrateError: a topic missing, empty, of the wrong message
+            type or holding a message the adapters refuse (e.g. an image encoding).
         owl_core.calibration.NotExcitedError: the motion does not excite two axes.
         owl_core.errors.CalibrationError: too few usable frames, no gyro overlap.
     """
@@ -197,6 +227,24 @@ def params_yaml(found: BagCalibration, source: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def check_params_output(output: str | os.PathLike[str], bag: str, overwrite: bool) -> None:
+    """Refuse ``-o`` before calibrating: the input bag itself or a path inside it (even with
+    ``overwrite``: replacing it would destroy the recording), an existing file without
+    ``overwrite``, a directory, or a file in a directory that does not exist.
+
+    Raises:
+        OutputOverlapError: the output is, is inside or contains the input ``bag``.
+        BagExistsError: the output exists and ``overwrite`` is False.
+        CalibrateError: the output is a directory, or its directory does not exist.
+    """
+    out = Path(output)
+    check_output(out, [bag], overwrite=overwrite)
+    if out.is_dir():
+        raise CalibrateError(f"output {out} is a directory (give a file name for the YAML)")
+    if not out.parent.is_dir():
+        raise CalibrateError(f"output directory {out.parent} does not exist (for {out})")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface."""
     p = OneLineErrorParser(
@@ -242,16 +290,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``owl_calibrate``; returns the exit status."""
     args = build_parser().parse_args(argv)
     out = Path(args.output) if args.output else None
-    if out is not None and out.exists() and not args.overwrite:
-        print(f"{PROG}: error: {out} exists (use --overwrite to replace it)", file=sys.stderr)
-        return 2
     try:
+        if out is not None:  # before the (long) calibration
+            check_params_output(out, args.bag, args.overwrite)
         opts = cal.CalibrationOptions(
             max_offset_s=args.max_offset,
             max_features=args.max_features,
             min_second_axis_rate=args.min_second_axis_rate,
         )
-    except OwlError as err:
+    except (BagError, CalibrateError, OwlError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
     try:
@@ -280,7 +327,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"RMS {r.residual_rms:.2f}; {found.elapsed_s:.1f} s CPU"
         )
     if out is not None:
-        out.write_text(params_yaml(found, Path(args.bag).name))
+        try:
+            check_params_output(out, args.bag, args.overwrite)  # it may have changed meanwhile
+            write_text_atomic(out, params_yaml(found, Path(args.bag).name))
+        except (BagError, CalibrateError) as err:
+            print(f"{PROG}: error: {err}", file=sys.stderr)
+            return 2
+        except OSError as err:
+            print(f"{PROG}: error: cannot write {out}: {err.strerror or err}", file=sys.stderr)
+            return 1
         if not args.quiet:
             print(f"# wrote {out}")
     return 0

@@ -12,7 +12,10 @@ the end with every process it started; ``--address HOST:PORT`` (or ``auto``) joi
 existing cluster instead (every node needs this package installed, as ``pip install .``
 gives it). Output: one text table (per bag, then pooled over every scored frame of every
 bag with owl_eval's own ``summarize``) and, with ``--json FILE``, one JSON object
-``{"bags": [...], "pooled": {...}, "wall_s": ...}``.
+``{"bags": [...], "pooled": {...}, "wall_s": ...}``. Every output path is checked before
+Ray starts: OUT_DIR must be a directory (or not exist yet), no result bag may lie inside an
+input, and FILE must not exist, be an input or lie inside one, be or hold a result bag, or
+be in a missing directory; FILE is written all at once (temporary file + ``os.replace``).
 """
 
 from __future__ import annotations
@@ -31,6 +34,8 @@ from pathlib import Path
 from typing import Any
 
 from bags.cli import OneLineErrorParser
+from bags.errors import BagError, OutputOverlapError
+from bags.io import check_output, write_text_atomic
 from owl_ros.tools.errors import BatchError
 
 PROG = "owl_batch"
@@ -144,6 +149,41 @@ def run_one(bag: str, out: str, params: dict[str, Any]) -> BagResult:
         raise
     res.seconds = time.monotonic() - t0
     return res
+
+
+def check_outputs(bags: Sequence[Path], out_dir: Path, json_path: Path | None) -> None:
+    """Refuse the output paths before any work (owl_batch has no overwrite option).
+
+    ``out_dir`` must be a directory or not exist; no result bag ``out_dir/<bag name>`` may
+    exist or lie inside an input bag; ``json_path`` must not exist, must not be an input,
+    lie inside one or contain one, must not be or contain a result bag, and its directory
+    must exist.
+
+    Raises:
+        BatchError: one of the above, naming the path.
+        OutputOverlapError: a result bag or ``json_path`` is, is inside or contains an input.
+    """
+    if out_dir.exists() and not out_dir.is_dir():
+        raise BatchError(f"--out-dir {out_dir} exists and is not a directory")
+    results = [out_dir / b.name for b in bags]
+    for res in results:
+        if res.exists() or res.is_symlink():
+            raise BatchError(f"{res} exists: choose another --out-dir")
+        check_output(res, bags, overwrite=True)
+    if json_path is None:
+        return
+    check_output(json_path, bags, overwrite=True)
+    try:
+        check_output(json_path, results, overwrite=True)
+    except OutputOverlapError:
+        raise BatchError(
+            f"--json {json_path}: the result bags are written there ({out_dir}/<bag name>): "
+            "choose another file"
+        ) from None
+    if json_path.exists() or json_path.is_symlink():
+        raise BatchError(f"--json {json_path} exists: choose another file (it is not replaced)")
+    if not json_path.parent.is_dir():
+        raise BatchError(f"--json {json_path}: directory {json_path.parent} does not exist")
 
 
 def _one_line(err: BaseException) -> str:
@@ -320,15 +360,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             name, params[name] = parse_assignment(item)
         build_options(params)  # refuse bad values before starting Ray
         out_dir = Path(args.out_dir)
-        clash = [b.name for b in bags if (out_dir / b.name).exists()]
-        if clash:
-            raise BatchError(f"{out_dir / clash[0]} exists: choose another --out-dir")
+        json_path = Path(args.json) if args.json else None
+        check_outputs(bags, out_dir, json_path)
         if args.num_cpus is not None and args.num_cpus < 1:
             raise BatchError(f"--num-cpus must be >= 1, got {args.num_cpus}")
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise BatchError(f"--out-dir {out_dir}: cannot create it ({err.strerror})") from None
     except ParameterError as err:
         print(f"{PROG}: error: {err.lines[0] if err.lines else err}", file=sys.stderr)
         return 2
-    except (BatchError, ValueError) as err:
+    except (BatchError, BagError, ValueError) as err:
         print(f"{PROG}: error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     for k, v in ONE_THREAD.items():
@@ -344,8 +387,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     for line in table_lines(report):
         print(line)
     print(f"{PROG}: {len(bags)} bags in {report['wall_s']:.1f} s on Ray ({report['ray']})")
-    if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=1))
+    if json_path is not None:
+        try:
+            if json_path.exists() or json_path.is_symlink():  # appeared during the run
+                raise BatchError(f"--json {json_path} appeared during the run: not replaced")
+            write_text_atomic(json_path, json.dumps(report, indent=1))
+        except (BatchError, OSError) as err:
+            print(f"{PROG}: error: {' '.join(str(err).split())}", file=sys.stderr)
+            return 1
     return 0 if all(r["ok"] for r in report["bags"]) else 1
 
 

@@ -12,6 +12,10 @@ Steps (progress on stderr, about a minute at 640x480 on two cores):
    OpenCV 5-point and gyro-aided two-view, scored by the same code.
 5. The ``cube`` scenario in memory for the shape-constancy figure.
 6. Figures (:mod:`owl_ros.tools.plots`) into ``results/figures`` and ``results/report.md``.
+
+The bags of a previous demo at ``results/demo/input`` and ``results/demo/owl`` are
+replaced; a folder there that holds anything else (not a rosbag2 directory) is refused in
+one line before step 1, and nothing in it is deleted.
 """
 
 from __future__ import annotations
@@ -19,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import shutil
 import signal
 import subprocess
 import sys
@@ -201,6 +204,7 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
             *(topic.bag for topic in RESULT_TOPICS),
             "--stamp",
             "header",
+            "--overwrite",  # a previous demo's bag (run_demo refused anything else)
             "-q",
         ],
         env=env,
@@ -254,8 +258,9 @@ def _live(in_bag: Path, out_bag: Path, log: _Log, rotation_xyzw: Sequence[float]
                 rec.wait()
         for f in files.values():
             f.close()
-    if not out_bag.exists():
-        raise DemoError("owl_record wrote no bag")
+    if rec.returncode != 0 or not out_bag.exists():  # else a previous demo's bag is there
+        tail = logs["owl_record"].read_text().strip().splitlines()[-1:]
+        raise DemoError(f"owl_record wrote no bag (status {rec.returncode}): {tail}")
     return "owl_node over DDS (owl_replay -> owl_node -> owl_record)"
 
 
@@ -361,9 +366,16 @@ def run_demo(args: argparse.Namespace) -> Path:
     cache = out / "cache"
     work.mkdir(parents=True, exist_ok=True)
     fig_dir.mkdir(parents=True, exist_ok=True)
+    in_bag, owl_bag = work / "input", work / "owl"
+    # the bags of a previous demo are replaced, anything else at these paths is refused
+    # before any work (BagExistsError: "not a rosbag2 directory"); the bag writers of
+    # owl_make_bag, owl_process and owl_record (--overwrite) do the replacing themselves
+    from bags.io import BagWriter
+
+    for bag in (in_bag, owl_bag):
+        BagWriter(bag, overwrite=True)
     log = _Log(5 if args.no_cube else 6, args.quiet)
     log.start_heartbeat()  # a daemon thread: ends with the process on an error
-    in_bag, owl_bag = work / "input", work / "owl"
 
     log.step(
         f"owl_make_bag {args.scenario}: {args.seconds:g} s at {args.width}x{args.height}, "
@@ -371,8 +383,6 @@ def run_demo(args: argparse.Namespace) -> Path:
     )
     make_argv = _make_bag(args, in_bag, log)
 
-    if owl_bag.exists():
-        shutil.rmtree(owl_bag)
     log.step("owl_node over DDS" if args.live else f"owl_process {in_bag} -o {owl_bag}")
     if args.live:
         from bags.cli.make_bag import build_parser as make_parser

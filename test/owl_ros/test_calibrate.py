@@ -75,6 +75,12 @@ def test_recovers_the_extrinsic_and_offset(
     assert calibrate.main([str(path), "-o", str(out)]) == 2
     assert "exists" in capsys.readouterr().err
     assert out.read_text() == before
+    # --overwrite replaces it whole (temporary file + os.replace: none left behind)
+    out.write_text("old\n")
+    assert calibrate.main([str(path), "-o", str(out), "--overwrite", "-q"]) == 0
+    capsys.readouterr()
+    assert out.read_text() == before  # the same estimate again
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calib.yaml"]
 
 
 @pytest.mark.slow
@@ -98,6 +104,76 @@ def test_bad_input_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     assert len(err) == 1 and err[0].startswith("owl_calibrate: error:")
     assert calibrate.main([str(tmp_path), "--max-offset", "-1"]) == 2
     assert "max_offset_s" in capsys.readouterr().err
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+def test_output_that_is_or_lies_in_the_input_is_refused_even_with_overwrite(
+    rich_bag: tuple[Path, np.ndarray, float, tuple],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A bag that calibrates: -o naming its .mcap with --overwrite replaced the recording
+    with the YAML. Every case is refused before reading the bag."""
+    bag = rich_bag[0]
+    before = _files(bag)
+    mcap = bag / "rich.mcap"
+    cases = [
+        ([str(bag), "-o", str(mcap), "--overwrite"], "is inside the input"),
+        ([str(bag), "-o", str(bag / "metadata.yaml"), "--overwrite"], "inside"),
+        ([str(mcap), "-o", str(mcap), "--overwrite"], "the output is the input"),
+        ([str(bag), "-o", str(bag.parent), "--overwrite"], "contains the input"),
+        # checked before calibrating (it used to calibrate, then crash on the write)
+        ([str(bag), "-o", str(tmp_path / "missing" / "c.yaml")], "does not exist"),
+        ([str(bag), "-o", str(tmp_path), "--overwrite"], "is a directory"),
+    ]
+    for argv, what in cases:
+        assert calibrate.main(argv) == 2, argv
+        captured = capsys.readouterr()
+        lines = captured.err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("owl_calibrate: error:"), lines
+        assert what in lines[0] and argv[2] in lines[0], lines
+        assert captured.out == ""  # refused before calibrating
+    assert _files(bag) == before
+    assert not (tmp_path / "missing").exists()
+
+
+def test_topic_of_the_wrong_type_or_encoding_is_one_line(
+    rich_bag: tuple[Path, np.ndarray, float, tuple], capsys: pytest.CaptureFixture[str]
+) -> None:
+    bag = rich_bag[0]
+    cases = [
+        # an IMU topic as the images: was "has 0 frames"
+        (
+            ["--image-topic", "/imu/data"],
+            "image topic /imu/data has type sensor_msgs/msg/Imu, "
+            "expected sensor_msgs/msg/Image or sensor_msgs/msg/CompressedImage",
+        ),
+        # images as the IMU: was an AttributeError traceback
+        (
+            ["--imu-topic", "/camera/image_raw"],
+            "imu topic /camera/image_raw has type "
+            "sensor_msgs/msg/Image, expected sensor_msgs/msg/Imu",
+        ),
+        (
+            ["--camera-info-topic", "/imu/data"],
+            "camera_info topic /imu/data has type "
+            "sensor_msgs/msg/Imu, expected sensor_msgs/msg/CameraInfo",
+        ),
+        # a 32FC1 range image: was an UnsupportedEncodingError traceback
+        (
+            ["--image-topic", "/ground_truth/range"],
+            "image topic /ground_truth/range: image.encoding '32FC1'",
+        ),
+    ]
+    for extra, what in cases:
+        assert calibrate.main([str(bag), *extra]) == 1, extra
+        captured = capsys.readouterr()
+        lines = captured.err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("owl_calibrate: error:"), lines
+        assert what in lines[0], lines
 
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "realsense_walk"

@@ -55,6 +55,28 @@ def test_demo_bad_scenario_is_one_line(tmp_path, capsys):
     assert err.count("\n") == 1 and "nowhere" in err
 
 
+def test_demo_refuses_a_result_folder_holding_other_files(tmp_path, capsys):
+    """demo/owl and demo/input are replaced only when they hold a previous demo's bag: a
+    folder with the user's files is refused in one line before any work (demo/owl used to
+    be deleted with everything in it)."""
+    for name in ("owl", "input"):
+        folder = tmp_path / "demo" / name
+        folder.mkdir(parents=True)
+        (folder / "notes.txt").write_text("my notes\n")
+        argv = ["--width", "64", "--height", "48", "--seconds", "0.2", "--no-cube"]
+        assert demo.main([*argv, "--out", str(tmp_path), "--quiet"]) == 2
+        captured = capsys.readouterr()
+        lines = captured.err.strip().splitlines()
+        assert len(lines) == 1 and str(folder) in lines[0], lines
+        assert "not a rosbag2 directory" in lines[0] and captured.out == ""
+        assert (folder / "notes.txt").read_text() == "my notes\n"
+        assert sorted(p.name for p in folder.iterdir()) == ["notes.txt"]
+        (folder / "notes.txt").unlink()
+        folder.rmdir()
+    # refused before step 1: no input bag was rendered
+    assert sorted(p.name for p in (tmp_path / "demo").iterdir()) == []
+
+
 @pytest.mark.slow
 @pytest.mark.dds
 def test_demo_live_over_dds(tmp_path, capsys, ros_domain_env):
