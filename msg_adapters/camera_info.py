@@ -45,6 +45,22 @@ def _distortion(model: str, d: np.ndarray[Any, np.dtype[np.float64]]) -> tuple[s
     return model, d
 
 
+def _check_roi(msg: Any) -> bool:
+    """True for a real ROI, False for the all-zero "full resolution" one; a partial ROI
+    (offsets without a size, a zero width or height) or one outside the image is an error,
+    since ignoring it would shift the principal point silently."""
+    roi = msg.roi
+    x, y, w, h = (int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height))
+    if x == y == w == h == 0:
+        return False
+    if w == 0 or h == 0 or x + w > int(msg.width) or y + h > int(msg.height):
+        raise CameraInfoError(
+            f"camera_info.roi (x_offset {x}, y_offset {y}, width {w}, height {h}) is not a "
+            f"region of the {int(msg.width)}x{int(msg.height)} image (all zero means full)"
+        )
+    return True
+
+
 def camera_info_to_model(msg: Any, rectified: bool = False) -> CameraModel:
     """CameraInfo -> CameraModel of the published image (binning and ROI applied).
 
@@ -56,7 +72,8 @@ def camera_info_to_model(msg: Any, rectified: bool = False) -> CameraModel:
 
     Raises:
         CameraInfoError: all-zero K (uncalibrated camera), unsupported distortion_model,
-            wrong number of D coefficients, zero size or any other invalid calibration
+            wrong number of D coefficients, zero size, an ROI that is neither all zero
+            nor inside the image, or any other invalid calibration
             (the message names the field and value).
     """
     if rectified:
@@ -75,8 +92,8 @@ def camera_info_to_model(msg: Any, rectified: bool = False) -> CameraModel:
     else:
         model, d = _distortion(str(msg.distortion_model), np.asarray(msg.d, dtype=np.float64))
     bx, by = max(1, int(msg.binning_x)), max(1, int(msg.binning_y))
+    has_roi = _check_roi(msg)
     roi = msg.roi
-    has_roi = int(roi.width) > 0 and int(roi.height) > 0
     width = int(roi.width) if has_roi else int(msg.width)
     height = int(roi.height) if has_roi else int(msg.height)
     if has_roi:

@@ -250,6 +250,13 @@ _CODECS: dict[str, str] = {"jpeg": ".jpg", "jpg": ".jpg", "png": ".png"}
 
 def _codec(fmt: str) -> str:
     words = fmt.replace(";", " ").lower().split()
+    if "compresseddepth" in words:
+        # compressed_depth_image_transport ("16UC1; compressedDepth png|rvl"): a 12-byte
+        # config header precedes the png/rvl data, and 32FC1 is stored as inverse depth
+        raise UnsupportedEncodingError(
+            f"compressed_image.format {fmt!r} is compressedDepth "
+            "(compressed_depth_image_transport), which is not supported; expected jpeg or png"
+        )
     for word in words:
         if word in _CODECS:
             return word
@@ -267,13 +274,24 @@ def compressed_to_array(msg: Any) -> tuple[AnyArray, str]:
     (mono8, mono16, bgr8, bgra8).
 
     Raises:
-        UnsupportedEncodingError: format names neither jpeg nor png.
+        UnsupportedEncodingError: format names neither jpeg nor png, is compressedDepth,
+            or its leading encoding is not in ENCODINGS (e.g. a Bayer mosaic, which would
+            otherwise decode as grey).
         LayoutError: the data does not decode.
     """
     fmt = str(msg.format)
     _codec(fmt)
+    declared = fmt.split(";")[0].strip() if ";" in fmt else ""
+    if declared and declared not in ENCODINGS:  # what image_to_array refuses, raw or not
+        raise UnsupportedEncodingError(
+            f"compressed_image.format {fmt!r}: encoding {declared!r} is not supported; "
+            f"supported: {', '.join(ENCODINGS)}"
+        )
     buf = np.frombuffer(memoryview(msg.data).cast("B"), dtype=np.uint8)
-    decoded = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    try:
+        decoded = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    except cv2.error:  # e.g. a corrupted header claiming a huge size fails cv2's size check
+        decoded = None
     if decoded is None:
         raise LayoutError(
             f"compressed_image.data ({buf.size} bytes, format {fmt!r}) does not decode"
@@ -285,7 +303,6 @@ def compressed_to_array(msg: Any) -> tuple[AnyArray, str]:
             f"compressed_image decodes to {channels} channel(s) of {decoded.dtype.name}, "
             "which has no supported encoding"
         )
-    declared = fmt.split(";")[0].strip() if ";" in fmt else ""
     if declared in _SWAPPED and _SWAPPED[declared][2] == encoding:
         decoded = cv2.cvtColor(decoded, _SWAPPED[declared][1])
         encoding = declared

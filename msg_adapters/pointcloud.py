@@ -35,6 +35,8 @@ POINTFIELD_DTYPES: dict[int, np.dtype[Any]] = {
     PointField.FLOAT32: np.dtype(np.float32),
     PointField.FLOAT64: np.dtype(np.float64),
 }
+#: field names that mark padding, not data (PCL writes "_"), skipped when reading.
+_PADDING_NAMES = frozenset({"", "_"})
 _DATATYPE_OF: dict[str, int] = {dt.str[1:]: code for code, dt in POINTFIELD_DTYPES.items()}
 
 #: The owl/points fields in wire order: (name, numpy type, unit and meaning).
@@ -90,7 +92,11 @@ def dtype_to_fields(dtype: np.dtype[Any]) -> list[Any]:
         code = _DATATYPE_OF.get(base.newbyteorder("=").str[1:])
         if code is None:
             raise LayoutError(f"point field {name!r} has dtype {base}, not a PointField type")
-        count = int(np.prod(shape)) if shape else 1
+        if len(shape) > 1:
+            raise LayoutError(
+                f"point field {name!r} has shape {shape}; a PointField holds a flat count"
+            )
+        count = int(shape[0]) if shape else 1
         out.append(PointField(name=name, offset=int(offset), datatype=code, count=count))
     return out
 
@@ -107,10 +113,12 @@ def fields_to_dtype(fields: Any, point_step: int, is_bigendian: bool | int) -> n
                 "PointField type (1..8)"
             )
         count = int(field.count)
+        if count < 1:
+            raise LayoutError(f"point_cloud.fields[{field.name!r}].count is {count}, not >= 1")
         fmt: Any = base.newbyteorder(order)
         if count != 1:
             fmt = (fmt, (count,))
-        end = int(field.offset) + base.itemsize * max(count, 1)
+        end = int(field.offset) + base.itemsize * count
         if end > point_step:
             raise LayoutError(
                 f"point_cloud.fields[{field.name!r}] ends at byte {end}, beyond point_step "
@@ -166,11 +174,13 @@ def cloud_to_array(msg: Any) -> AnyArray:
     """PointCloud2 -> (height * width,) structured array, native order, packed fields.
 
     Honours ``is_bigendian``, ``point_step`` and ``row_step`` padding, and any field order
-    or offsets; fields with count > 1 become sub-arrays. The message is not modified.
+    or offsets; fields with count > 1 become sub-arrays. Padding fields (PCL names them
+    ``"_"``, possibly several times) and unnamed fields are skipped. The message is not
+    modified.
 
     Raises:
         LayoutError: row_step < width * point_step, data length != row_step * height,
-            unknown datatype, a field beyond point_step, duplicated names.
+            unknown datatype, count < 1, a field beyond point_step, duplicated names.
     """
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
@@ -179,7 +189,8 @@ def cloud_to_array(msg: Any) -> AnyArray:
             f"point_cloud.row_step {row_step} is smaller than width {width} * point_step "
             f"{point_step} = {width * point_step}"
         )
-    wire = fields_to_dtype(msg.fields, point_step, msg.is_bigendian)
+    fields = [f for f in msg.fields if str(f.name) not in _PADDING_NAMES]
+    wire = fields_to_dtype(fields, point_step, msg.is_bigendian)
     buf = np.frombuffer(memoryview(msg.data).cast("B"), dtype=np.uint8)
     if buf.size != row_step * height:
         raise LayoutError(

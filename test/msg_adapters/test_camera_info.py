@@ -126,3 +126,19 @@ def test_pipeline_rectified_parameter_takes_p():
         pipe.add_camera_info(info)
         assert pipe.camera is not None
         assert (pipe.camera.K[0, 0], pipe.camera.distortion_model) == (fx, dist)
+
+
+@pytest.mark.parametrize(
+    "roi",
+    [(100, 40, 0, 0), (0, 0, 400, 0), (300, 0, 400, 300), (0, 200, 400, 300)],
+    ids=["offsets-only", "zero-height", "beyond-width", "beyond-height"],
+)
+def test_partial_or_outside_roi_is_refused_not_ignored(roi):
+    info = CameraInfo(width=640, height=480, distortion_model="plumb_bob", d=[0.0] * 5)
+    info.k = K.reshape(9)
+    info.roi.x_offset, info.roi.y_offset, info.roi.width, info.roi.height = roi
+    with pytest.raises(CameraInfoError, match=r"camera_info\.roi .* 640x480 image"):
+        camera_info_to_model(info)
+    # the full image as ROI is the same as no ROI
+    info.roi.x_offset, info.roi.y_offset, info.roi.width, info.roi.height = 0, 0, 640, 480
+    assert camera_info_to_model(info).K[0, 2] == K[0, 2]

@@ -227,3 +227,41 @@ def test_compressed_errors():
         compressed_to_array(msg)
     with pytest.raises(UnsupportedEncodingError, match="jpeg"):
         array_to_compressed(np.zeros((4, 4), np.uint16), "mono16", "jpeg")
+
+
+@pytest.mark.parametrize(
+    "fmt", ["16UC1; compressedDepth", "16UC1; compressedDepth png", "32FC1; compressedDepth png"]
+)
+def test_compressed_depth_is_refused_by_name(fmt):
+    # compressed_depth_image_transport: a 12-byte config header, then png (not decodable)
+    ok, png = cv2.imencode(".png", np.full((4, 4), 1000, np.uint16))
+    assert ok
+    msg = CompressedImage(format=fmt)
+    msg.data = array.array("B", bytes(12) + png.tobytes())
+    with pytest.raises(UnsupportedEncodingError, match="compressedDepth"):
+        compressed_to_array(msg)
+
+
+def test_compressed_with_an_unsupported_declared_encoding_is_refused():
+    # image_transport writes a Bayer mosaic as "bayer_rggb8; jpeg compressed ": it decodes
+    # as one grey channel, but it is not a grey image (a raw bayer_rggb8 Image is refused)
+    ok, jpg = cv2.imencode(".jpg", _random("mono8", seed=4))
+    assert ok
+    msg = CompressedImage(format="bayer_rggb8; jpeg compressed ")
+    msg.data = array.array("B", jpg.tobytes())
+    with pytest.raises(UnsupportedEncodingError, match="bayer_rggb8"):
+        compressed_to_array(msg)
+    msg.format = "mono8; jpeg compressed "  # what image_transport writes for mono8
+    assert compressed_to_array(msg)[1] == "mono8"
+
+
+def test_corrupted_compressed_header_is_a_layout_error_not_cv2_error():
+    ok, jpg = cv2.imencode(".jpg", np.zeros((8, 8), np.uint8))
+    assert ok
+    data = bytearray(jpg.tobytes())
+    sof = data.find(b"\xff\xc0")
+    data[sof + 5 : sof + 9] = (65000).to_bytes(2, "big") * 2  # 65000 x 65000 pixels
+    msg = CompressedImage(format="jpeg")
+    msg.data = array.array("B", bytes(data))
+    with pytest.raises(LayoutError, match="does not decode"):
+        compressed_to_array(msg)

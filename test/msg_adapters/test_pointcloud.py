@@ -221,3 +221,38 @@ def test_flags_bits_survive():
     res.flags[:] = [PointFlag.L_LOCAL | PointFlag.MOVING, PointFlag.IMU_GAP]
     pts = cloud_to_array(frame_result_to_cloud(res, make_header(0, "c")))
     assert pts["flags"].tolist() == [5, 32]
+
+
+def test_reader_skips_pcl_padding_fields_and_unnamed_fields():
+    # PCL marks padding with fields named "_" (several of them); one unnamed field too
+    x = np.arange(3, dtype="<f4") + 0.5
+    data = bytearray(3 * 32)
+    for i in range(3):
+        data[32 * i : 32 * i + 4] = x[i].tobytes()
+        data[32 * i + 16 : 32 * i + 20] = np.uint32(7 + i).tobytes()
+    msg = PointCloud2(height=1, width=3, point_step=32, row_step=96)
+    msg.fields = [
+        PointField(name="x", offset=0, datatype=PointField.FLOAT32, count=1),
+        PointField(name="_", offset=4, datatype=PointField.UINT8, count=4),
+        PointField(name="", offset=8, datatype=PointField.FLOAT32, count=1),
+        PointField(name="rgb", offset=16, datatype=PointField.UINT32, count=1),
+        PointField(name="_", offset=20, datatype=PointField.UINT8, count=12),
+    ]
+    msg.data = array.array("B", bytes(data))
+    pts = cloud_to_array(msg)
+    assert pts.dtype.names == ("x", "rgb")
+    np.testing.assert_array_equal(pts["x"], x)
+    np.testing.assert_array_equal(pts["rgb"], [7, 8, 9])
+
+
+def test_count_zero_field_is_refused_not_read_as_empty():
+    msg = frame_result_to_cloud(_result(1), make_header(0, "c"))
+    msg.fields[0].count = 0
+    with pytest.raises(LayoutError, match=r"fields\['x'\].count is 0"):
+        cloud_to_array(msg)
+
+
+def test_writer_refuses_multidimensional_subarrays():
+    pts = np.zeros(2, dtype=[("x", "f4"), ("m", "f4", (2, 2))])
+    with pytest.raises(LayoutError, match=r"'m' has shape \(2, 2\)"):
+        array_to_cloud(pts, make_header(0, "c"))
