@@ -10,12 +10,16 @@ parameters and diagnostics are described in ``docs`` / contract.md and
 ``config/owl.yaml``; every parameter is declared from the one table in
 :mod:`owl_ros.params`.
 
-Subscriptions (best effort, keep last: they match drivers and replayed bags): ``image``
-(or ``image/compressed`` with ``image_transport: compressed``), ``camera_info``, ``imu``
-and, with ``speed_source`` odometry/twist, ``speed_topic``. Publications (reliable, keep
-last 10): ``owl/points``, ``owl/heading``, ``owl/gyro_bias``, ``/diagnostics`` and
-``owl/debug_image`` (built only while someone subscribes). QoS-incompatible peers are
-reported in ``/diagnostics``.
+Subscriptions (rclpy's sensor-data QoS: best effort, volatile, keep last 5, the IMU 200;
+they match reliable and best-effort drivers and replayed bags): ``image`` (or
+``image/compressed`` with ``image_transport: compressed``), ``camera_info``, ``imu`` and,
+with ``speed_source`` odometry/twist, ``speed_topic``. Publications (reliable, volatile,
+keep last 10): ``owl/points``, ``owl/heading``, ``owl/heading_with_covariance``,
+``owl/gyro_bias``, ``owl/heading_marker``, ``/diagnostics`` and ``owl/debug_image`` (built
+only while someone subscribes). QoS-incompatible peers of each are reported in
+``/diagnostics``; the history, depth and reliability of each may be set at start with the
+standard read-only ``qos_overrides.<topic>.<subscription|publisher>.<policy>`` parameters
+(an override the node has no such entity for is warned about, not ignored silently).
 
 Time: header stamps only for the maths; the node's clock (``use_sim_time`` honoured) only
 stamps diagnostics and measures stamp -> publication latency; waits are on a monotonic
@@ -25,12 +29,13 @@ clock.
 from __future__ import annotations
 
 import collections
+import contextlib
 import signal
 import sys
 import textwrap
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from enum import StrEnum
 from typing import Any
 
@@ -45,6 +50,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu, PointCloud2
 from visualization_msgs.msg import Marker
@@ -193,15 +199,33 @@ def feed(
 
 
 def _sensor_qos(depth: int) -> QoSProfile:
+    """rclpy's ``qos_profile_sensor_data`` with ``depth`` (a new profile each call: a QoS
+    override changes the profile it is applied to)."""
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.BEST_EFFORT
     )
 
 
 def _reliable_qos() -> QoSProfile:
+    """Reliable, volatile, keep last ``PUB_DEPTH`` (a new profile each call)."""
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=PUB_DEPTH, reliability=ReliabilityPolicy.RELIABLE
     )
+
+
+def _check_qos_override(qos: QoSProfile) -> SetParametersResult:
+    """Refuse an overridden profile that rmw would fail on with an obscure error."""
+    if qos.history == HistoryPolicy.KEEP_LAST and qos.depth < 1:
+        return SetParametersResult(
+            successful=False, reason=f"depth must be >= 1 with keep_last, got {qos.depth}"
+        )
+    return SetParametersResult(successful=True)
+
+
+#: the QoS policies of each subscription and publication of node.py that a user may set at
+#: start with read-only ``qos_overrides.<topic>.<subscription|publisher>.<policy>``
+#: parameters (``<topic>`` resolved: ``/camera/image_raw`` after ``-r image:=...``).
+QOS_OVERRIDES = QoSOverridingOptions.with_default_policies(callback=_check_qos_override)
 
 
 def heading_marker(heading: Any, header: Any) -> Any:
@@ -257,46 +281,33 @@ class OwlNode(Node):
         self._calibration_logged = False
         self._stop = threading.Event()
 
-        sensor = _sensor_qos(IMAGE_DEPTH)
         self._inputs: list[tuple[Any, str]] = []  # (subscription, expected type name)
         if self.options.image_transport == "compressed":
-            self._subscribe(CompressedImage, "image/compressed", self._on_image, sensor)
+            self._subscribe(CompressedImage, "image/compressed", self._on_image, IMAGE_DEPTH)
         else:
-            self._subscribe(Image, "image", self._on_image, sensor)
-        self._subscribe(CameraInfo, "camera_info", self._on_camera_info, sensor)
-        self._subscribe(Imu, "imu", self._on_imu, _sensor_qos(IMU_DEPTH))
+            self._subscribe(Image, "image", self._on_image, IMAGE_DEPTH)
+        self._subscribe(CameraInfo, "camera_info", self._on_camera_info, IMAGE_DEPTH)
+        self._subscribe(Imu, "imu", self._on_imu, IMU_DEPTH)
         if self.options.speed_source != "none":
             kind = Odometry if self.options.speed_source == "odometry" else TwistStamped
             topic = self.options.speed_topic
-            self._subscribe(kind, topic, self._on_speed, _sensor_qos(IMAGE_DEPTH))
+            self._subscribe(kind, topic, self._on_speed, IMAGE_DEPTH, param="speed_topic")
 
-        reliable = _reliable_qos()
-        self._points_pub = self.create_publisher(
-            PointCloud2, "owl/points", reliable, event_callbacks=self._pub_events("owl/points")
-        )
-        self._heading_pub = self.create_publisher(
-            Vector3Stamped, "owl/heading", reliable,
-            event_callbacks=self._pub_events("owl/heading"),
-        )  # fmt: skip
-        self._bias_pub = self.create_publisher(
-            Vector3Stamped, GYRO_BIAS.name, reliable,
-            event_callbacks=self._pub_events(GYRO_BIAS.name),
-        )  # fmt: skip
-        self._diag_pub = self.create_publisher(
-            DiagnosticArray, "/diagnostics", reliable,
-            event_callbacks=self._pub_events("/diagnostics"),
-        )  # fmt: skip
+        self._points_pub = self._advertise(PointCloud2, "owl/points")
+        self._heading_pub = self._advertise(Vector3Stamped, "owl/heading")
+        self._bias_pub = self._advertise(Vector3Stamped, GYRO_BIAS.name)
+        self._diag_pub = self._advertise(DiagnosticArray, "/diagnostics")
         self._debug_pub = None
         if self.options.publish_debug_image:
-            self._debug_pub = self.create_publisher(
-                Image, "owl/debug_image", reliable,
-                event_callbacks=self._pub_events("owl/debug_image"),
-            )  # fmt: skip
-        self._marker_pub = self.create_publisher(Marker, "owl/heading_marker", reliable)
-        self._dense = DensePublishers(self, self.options, reliable) if self.options.dense else None
-        self._heading_cov_pub = self.create_publisher(
-            TwistWithCovarianceStamped, "owl/heading_with_covariance", reliable
+            self._debug_pub = self._advertise(Image, "owl/debug_image")
+        self._marker_pub = self._advertise(Marker, "owl/heading_marker")
+        self._dense: DensePublishers | None = None
+        if self.options.dense:
+            self._dense = DensePublishers(self, self.options, _reliable_qos())
+        self._heading_cov_pub = self._advertise(
+            TwistWithCovarianceStamped, "owl/heading_with_covariance"
         )
+        self._warn_unused_qos_overrides()
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._announce()
         self._worker = threading.Thread(target=self._run, name="owl-worker", daemon=True)
@@ -397,13 +408,59 @@ class OwlNode(Node):
             except Exception as err:  # only costs the TF messages' deserialisation
                 self.get_logger().warning(f"TF listener not closed: {err}")
 
-    def _subscribe(self, kind: Any, topic: str, callback: Any, qos: QoSProfile) -> None:
+    def _subscribe(
+        self, kind: Any, topic: str, callback: Any, depth: int, param: str = ""
+    ) -> None:
+        """Subscribe with the sensor-data QoS (best effort: matches reliable and best-effort
+        publishers), QoS events reported, ``qos_overrides`` honoured. ``param``: the
+        parameter that gave ``topic``, named if it cannot be resolved."""
+        try:
+            name = self.resolve_topic_name(topic)
+        except RuntimeError as err:  # rclpy's RCLError, e.g. "a//b"
+            why = " ".join(str(err).split())
+            raise ParameterError([f"parameter {param or topic}: {why}, got {topic!r}"]) from None
         events = SubscriptionEventCallbacks(
-            incompatible_qos=lambda info: self._qos_event("subscription", topic, info)
+            incompatible_qos=lambda info: self._qos_event("subscription", name, info)
         )
-        sub = self.create_subscription(kind, topic, callback, qos, event_callbacks=events)
+        with self._qos_override_errors(name, "subscription"):
+            sub = self.create_subscription(
+                kind, topic, callback, _sensor_qos(depth), event_callbacks=events,
+                qos_overriding_options=QOS_OVERRIDES,
+            )  # fmt: skip
         package = kind.__module__.split(".")[0]
         self._inputs.append((sub, f"{package}/msg/{kind.__name__}"))
+
+    def _advertise(self, kind: Any, topic: str) -> Any:
+        """A reliable publisher (keep last ``PUB_DEPTH``), QoS events reported in
+        /diagnostics, ``qos_overrides`` honoured."""
+        name = self.resolve_topic_name(topic)
+        with self._qos_override_errors(name, "publisher"):
+            return self.create_publisher(
+                kind, topic, _reliable_qos(), event_callbacks=self._pub_events(name),
+                qos_overriding_options=QOS_OVERRIDES,
+            )  # fmt: skip
+
+    @contextlib.contextmanager
+    def _qos_override_errors(self, topic: str, side: str) -> Iterator[None]:
+        """A bad ``qos_overrides.<topic>.<side>.*`` value as a ParameterError (one line)."""
+        prefix = f"qos_overrides.{topic}.{side}."
+        try:
+            yield
+        except (ParameterException, InvalidQosOverridesError, RuntimeError) as err:
+            if not any(n.startswith(prefix) for n in self._parameter_overrides):
+                raise
+            raise ParameterError([f"parameters {prefix}*: {' '.join(str(err).split())}"]) from None
+
+    def _warn_unused_qos_overrides(self) -> None:
+        """A ``qos_overrides`` parameter that no subscription or publication declared (a
+        topic the node does not have, a policy other than history, depth, reliability, or a
+        dense topic) changes nothing: say so rather than ignore it silently."""
+        for name in sorted(self._parameter_overrides):
+            if name.startswith("qos_overrides.") and not self.has_parameter(name):
+                self.get_logger().warning(
+                    f"parameter {name}: no such QoS override (the node's topics accept "
+                    "history, depth and reliability), ignored"
+                )
 
     def _foreign_publishers(self) -> list[str]:
         """Publishers on an input topic whose type is not the one subscribed.

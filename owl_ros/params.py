@@ -63,6 +63,8 @@ class Param:
         low, high: inclusive valid range for int/double (None = unbounded on that side).
         read_only: True when a change needs a restart (refused at runtime).
         choices: allowed values of a string parameter.
+        topic: a string parameter that names a topic (checked like ``create_subscription``
+            does, so that a bad name is one parameter error, not a traceback at start).
         length: required length of a double_array.
         engine: the EngineOptions field it sets ("tracker.<field>" for TrackerOptions), or
             None for node settings (NodeOptions field of the same name).
@@ -76,6 +78,7 @@ class Param:
     high: float | None = None
     read_only: bool = False
     choices: tuple[str, ...] = ()
+    topic: bool = False
     length: int | None = None
     engine: str | None = None
 
@@ -159,6 +162,7 @@ PARAMS: tuple[Param, ...] = (
         "odom",
         "topic of the speed source (relative names are remappable)",
         read_only=True,
+        topic=True,
     ),
     Param(
         "speed_max_age_s",
@@ -665,7 +669,7 @@ def _check(p: Param, value: Any) -> str | None:
             return f"must be one of {', '.join(p.choices)}, got {value!r}"
         if not p.choices and not value.strip():
             return "must not be empty"
-        return None
+        return _topic_name_error(value) if p.topic else None
     if p.kind == "double_array":
         if isinstance(value, str | bytes) or not isinstance(value, Iterable):
             return f"must be a list of {p.length} numbers, got {value!r}"
@@ -686,6 +690,22 @@ def _check(p: Param, value: Any) -> str | None:
         return f"must be finite, got {value!r}"
     if (p.low is not None and value < p.low) or (p.high is not None and value > p.high):
         return f"must be in {p.constraint_text()}, got {value!r}"
+    return None
+
+
+def _topic_name_error(name: str) -> str | None:
+    """Why ``name`` is not a valid ROS 2 topic name (rcl's own rules), or None (also when
+    rclpy is not importable: then nothing subscribes to it)."""
+    try:
+        from rclpy.exceptions import InvalidTopicNameException
+        from rclpy.validate_topic_name import validate_topic_name
+    except ImportError:
+        return None
+    try:
+        validate_topic_name(name)
+    except InvalidTopicNameException as err:
+        why = str(err).splitlines()[0].removeprefix("Invalid topic name: ").rstrip(":")
+        return f"must be a valid topic name ({why}), got {name!r}"
     return None
 
 

@@ -19,19 +19,23 @@ import numpy as np
 import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Vector3Stamped
+from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter as RclpyParameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, PointCloud2
+from visualization_msgs.msg import Marker
 
 from bags.cli import make_bag
 from bags.io import BagReader
 from msg_adapters.diagnostics import msg_to_records
 from msg_adapters.pointcloud import OWL_FIELDS, cloud_speed, cloud_to_array
 from msg_adapters.stamps import header_to_ns
+from owl_ros.node import OwlNode
+from owl_ros.params import ParameterError
 from owl_ros.process import ProcessOptions, Summary, process_bag
 from owl_ros.tools.live import LiveNode
 from owl_ros.topics import RESULT_TOPICS
@@ -548,3 +552,141 @@ def test_a_10_ms_imu_lag_warns_in_diagnostics_and_is_logged_once(
     assert first["calibration_ok"] == "False" and first["calibration_source"] == "online"
     assert abs(float(first["calibration_offset_s"]) - 0.01) < 0.001, first
     assert err.count("camera-IMU calibration:") == 1, err
+
+
+# ---- QoS of the node object itself (in this process, its own context and domain) ----------
+
+
+@pytest.fixture
+def owl_context(ros_domain_env: dict[str, str]) -> Iterator[Context]:
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=int(ros_domain_env["ROS_DOMAIN_ID"]))
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture
+def make_owl(owl_context: Context) -> Iterator[Callable[..., OwlNode]]:
+    nodes: list[OwlNode] = []
+
+    def make(*overrides: RclpyParameter, remaps: Sequence[str] = ()) -> OwlNode:
+        cli = ["--ros-args", *(a for r in remaps for a in ("-r", r))] if remaps else None
+        node = OwlNode(context=owl_context, parameter_overrides=list(overrides), cli_args=cli)
+        nodes.append(node)
+        return node
+
+    yield make
+    for node in nodes:
+        node.close()
+        node.destroy_node()
+
+
+def qos_of(node: Any, topic: str, publishers: bool) -> list[str]:
+    """Reliability of ``node``'s own publishers (or subscriptions) on ``topic``."""
+    infos = (
+        node.get_publishers_info_by_topic if publishers else node.get_subscriptions_info_by_topic
+    )
+    return [i.qos_profile.reliability.name for i in infos(topic) if i.node_name == node.get_name()]
+
+
+def test_every_publication_reports_an_incompatible_subscriber(
+    owl_context: Context,
+    make_owl: Callable[..., OwlNode],
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    """A transient-local subscriber can never get a volatile publisher's messages: the node
+    says so for each of its outputs (the log and owl: input's qos_events_total), the heading
+    with covariance and the marker included."""
+    node = make_owl()
+    peer = rclpy.create_node("owl_test_latched_peer", context=owl_context)
+    latched = QoSProfile(
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+    kinds = {
+        "/owl/points": PointCloud2,
+        "/owl/heading": Vector3Stamped,
+        "/owl/heading_with_covariance": TwistWithCovarianceStamped,
+        "/owl/heading_marker": Marker,
+        "/owl/gyro_bias": Vector3Stamped,
+        "/owl/debug_image": Image,
+        "/diagnostics": DiagnosticArray,
+    }
+    assert {t.bag for t in RESULT_TOPICS} <= set(kinds)
+    for topic, kind in kinds.items():
+        peer.create_subscription(kind, topic, lambda _: None, latched)
+    executor = SingleThreadedExecutor(context=owl_context)
+    executor.add_node(node)
+    executor.add_node(peer)
+    log = ""
+    try:
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline and node._pipeline.totals.qos_events < len(kinds):
+            executor.spin_once(timeout_sec=0.05)
+        time.sleep(0.2)  # the worker hands the last event to the pipeline
+        out = capfd.readouterr()
+        log = out.out + out.err
+    finally:
+        executor.shutdown()
+        peer.destroy_node()
+    for topic in kinds:
+        assert f"{topic.lstrip('/')}: incompatible QoS with a peer" in log, (topic, log)
+    assert node._pipeline.totals.qos_events == len(kinds)
+    assert "publication /owl/points: incompatible QoS" in log  # the resolved name
+
+
+def test_qos_overrides_set_the_qos_and_an_unknown_one_is_warned_about(
+    make_owl: Callable[..., OwlNode], capfd: pytest.CaptureFixture[str]
+) -> None:
+    node = make_owl(
+        RclpyParameter(
+            "qos_overrides./camera/image_raw.subscription.reliability", value="reliable"
+        ),
+        RclpyParameter("qos_overrides./owl/points.publisher.reliability", value="best_effort"),
+        RclpyParameter("qos_overrides./owl/points.publisher.durability", value="transient_local"),
+        remaps=["image:=/camera/image_raw"],
+    )
+    # the resolved (remapped) name, as rclcpp and rclpy nodes take them
+    assert qos_of(node, "/camera/image_raw", publishers=False) == ["RELIABLE"]
+    assert qos_of(node, "/camera_info", publishers=False) == ["BEST_EFFORT"]  # its own profile
+    assert qos_of(node, "/owl/points", publishers=True) == ["BEST_EFFORT"]
+    assert qos_of(node, "/owl/heading", publishers=True) == ["RELIABLE"]
+    name = "qos_overrides./imu.subscription.depth"
+    assert node.get_parameter(name).value == 200  # declared with the node's own default
+    assert node.describe_parameters([name])[0].read_only
+    out = capfd.readouterr()
+    log = out.out + out.err
+    unused = "parameter qos_overrides./owl/points.publisher.durability: no such QoS override"
+    assert log.count(unused) == 1, log
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "expect"),
+    [
+        ("qos_overrides./imu.subscription.depth", -3, "depth must be >= 1"),
+        ("qos_overrides./owl/heading.publisher.reliability", "sometimes", "`sometimes`"),
+    ],
+)
+def test_a_bad_qos_override_is_a_parameter_error(
+    make_owl: Callable[..., OwlNode], name: str, value: Any, expect: str
+) -> None:
+    with pytest.raises(ParameterError) as err:
+        make_owl(RclpyParameter(name, value=value))
+    (line,) = err.value.lines
+    assert line.startswith(f"parameters {name.rsplit('.', 1)[0]}.*: ") and expect in line, line
+
+
+@pytest.mark.parametrize("topic", ["wheel odom", "odom//twist"])
+def test_an_invalid_speed_topic_is_a_parameter_error(
+    make_owl: Callable[..., OwlNode], topic: str
+) -> None:
+    """Caught by the parameter check ("wheel odom") or when it is resolved ("odom//twist"):
+    one line naming the parameter, as owl_node prints it, instead of a traceback."""
+    with pytest.raises(ParameterError) as err:
+        make_owl(
+            RclpyParameter("speed_source", value="twist"),
+            RclpyParameter("speed_topic", value=topic),
+        )
+    (line,) = err.value.lines
+    assert line.startswith("parameter speed_topic: ") and repr(topic) in line, line

@@ -72,6 +72,8 @@ def test_every_table_entry_is_consistent() -> None:
         ({"min_track_frames": 11}, "parameter min_track_frames: min_track_frames (11) must not"),
         ({"tracker_lk_window_px": 8}, "parameter tracker_lk_window_px: TrackerOptions."),
         ({"no_such_thing": 1}, "parameter no_such_thing: unknown parameter"),
+        ({"speed_topic": "wheel odom"}, "parameter speed_topic: must be a valid topic name ("),
+        ({"speed_topic": "odom/"}, "parameter speed_topic: must be a valid topic name ("),
     ],
 )
 def test_one_line_per_bad_value_naming_parameter_and_value(
