@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -29,3 +31,16 @@ def ros_domain_env(monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
     monkeypatch.setenv("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
     monkeypatch.setenv("PYTHONUNBUFFERED", "1")
     return dict(os.environ)
+
+
+@pytest.fixture
+def rclpy_context(ros_domain_env: dict[str, str]) -> Iterator[Any]:
+    """An rclpy context of the test's own on its private domain, for nodes made in the
+    test's process; shut down after the test."""
+    import rclpy
+    from rclpy.context import Context
+
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=int(ros_domain_env["ROS_DOMAIN_ID"]))
+    yield ctx
+    rclpy.try_shutdown(context=ctx)

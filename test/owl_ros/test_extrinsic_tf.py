@@ -22,7 +22,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-import rclpy
 from geometry_msgs.msg import TransformStamped
 from rclpy.context import Context
 from rclpy.parameter import Parameter
@@ -81,19 +80,11 @@ class FakeTf:
 
 
 @pytest.fixture
-def context(ros_domain_env: dict[str, str]) -> Iterator[Context]:
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=int(ros_domain_env["ROS_DOMAIN_ID"]))
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
-@pytest.fixture
-def make_node(context: Context) -> Iterator[Callable[..., OwlNode]]:
+def make_node(rclpy_context: Context) -> Iterator[Callable[..., OwlNode]]:
     nodes: list[OwlNode] = []
 
     def make(*overrides: Parameter) -> OwlNode:
-        node = OwlNode(context=context, parameter_overrides=[PERIOD, *overrides])
+        node = OwlNode(context=rclpy_context, parameter_overrides=[PERIOD, *overrides])
         nodes.append(node)
         return node
 

@@ -558,20 +558,12 @@ def test_a_10_ms_imu_lag_warns_in_diagnostics_and_is_logged_once(
 
 
 @pytest.fixture
-def owl_context(ros_domain_env: dict[str, str]) -> Iterator[Context]:
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=int(ros_domain_env["ROS_DOMAIN_ID"]))
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
-@pytest.fixture
-def make_owl(owl_context: Context) -> Iterator[Callable[..., OwlNode]]:
+def make_owl(rclpy_context: Context) -> Iterator[Callable[..., OwlNode]]:
     nodes: list[OwlNode] = []
 
     def make(*overrides: RclpyParameter, remaps: Sequence[str] = ()) -> OwlNode:
         cli = ["--ros-args", *(a for r in remaps for a in ("-r", r))] if remaps else None
-        node = OwlNode(context=owl_context, parameter_overrides=list(overrides), cli_args=cli)
+        node = OwlNode(context=rclpy_context, parameter_overrides=list(overrides), cli_args=cli)
         nodes.append(node)
         return node
 
@@ -590,7 +582,7 @@ def qos_of(node: Any, topic: str, publishers: bool) -> list[str]:
 
 
 def test_every_publication_reports_an_incompatible_subscriber(
-    owl_context: Context,
+    rclpy_context: Context,
     make_owl: Callable[..., OwlNode],
     capfd: pytest.CaptureFixture[str],
 ) -> None:
@@ -598,7 +590,7 @@ def test_every_publication_reports_an_incompatible_subscriber(
     says so for each of its outputs (the log and owl: input's qos_events_total), the heading
     with covariance and the marker included."""
     node = make_owl()
-    peer = rclpy.create_node("owl_test_latched_peer", context=owl_context)
+    peer = rclpy.create_node("owl_test_latched_peer", context=rclpy_context)
     latched = QoSProfile(
         depth=1,
         reliability=ReliabilityPolicy.RELIABLE,
@@ -616,7 +608,7 @@ def test_every_publication_reports_an_incompatible_subscriber(
     assert {t.bag for t in RESULT_TOPICS} <= set(kinds)
     for topic, kind in kinds.items():
         peer.create_subscription(kind, topic, lambda _: None, latched)
-    executor = SingleThreadedExecutor(context=owl_context)
+    executor = SingleThreadedExecutor(context=rclpy_context)
     executor.add_node(node)
     executor.add_node(peer)
     log = ""
