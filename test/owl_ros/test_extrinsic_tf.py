@@ -17,13 +17,12 @@ from __future__ import annotations
 import sys
 import time
 import types
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import pytest
 from geometry_msgs.msg import TransformStamped
-from rclpy.context import Context
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Imu
 
@@ -79,21 +78,6 @@ class FakeTf:
         self.module.TransformListener = TransformListener  # type: ignore[attr-defined]
 
 
-@pytest.fixture
-def make_node(rclpy_context: Context) -> Iterator[Callable[..., OwlNode]]:
-    nodes: list[OwlNode] = []
-
-    def make(*overrides: Parameter) -> OwlNode:
-        node = OwlNode(context=rclpy_context, parameter_overrides=[PERIOD, *overrides])
-        nodes.append(node)
-        return node
-
-    yield make
-    for node in nodes:
-        node.close()
-        node.destroy_node()
-
-
 def feed(node: OwlNode) -> None:
     """One camera_info, image and IMU sample, with their frame_ids, through the callbacks."""
     stamp = 1_000_000_000
@@ -126,13 +110,13 @@ def wait_for(what: Callable[[], bool], why: str, timeout: float = 20.0) -> None:
 
 
 def test_no_parameter_the_rotation_comes_from_tf(
-    make_node: Callable[..., OwlNode],
+    make_owl: Callable[..., OwlNode],
     monkeypatch: pytest.MonkeyPatch,
     capfd: pytest.CaptureFixture[str],
 ) -> None:
     fake = FakeTf()
     monkeypatch.setitem(sys.modules, "tf2_ros", fake.module)
-    node = make_node()
+    node = make_owl(PERIOD)
     assert [(node_, spin) for _, node_, spin in fake.listeners] == [(node, False)]
     feed(node)
     wait_for(lambda: engine_rotation(node) == TF_ROTATION, "the TF rotation in the engine")
@@ -155,13 +139,13 @@ def test_no_parameter_the_rotation_comes_from_tf(
 
 
 def test_the_parameter_wins_over_tf(
-    make_node: Callable[..., OwlNode],
+    make_owl: Callable[..., OwlNode],
     monkeypatch: pytest.MonkeyPatch,
     capfd: pytest.CaptureFixture[str],
 ) -> None:
     fake = FakeTf()
     monkeypatch.setitem(sys.modules, "tf2_ros", fake.module)
-    node = make_node(Parameter("camera_to_imu_rotation_xyzw", value=list(PARAM_ROTATION)))
+    node = make_owl(PERIOD, Parameter("camera_to_imu_rotation_xyzw", value=list(PARAM_ROTATION)))
     feed(node)
     wait_for(lambda: engine_rotation(node) is not None, "the engine")
     time.sleep(0.3)  # a few diagnostics periods, when TF would be looked up
@@ -174,7 +158,7 @@ def test_the_parameter_wins_over_tf(
 
 
 def test_an_identity_parameter_says_that_it_keeps_tf_out(
-    make_node: Callable[..., OwlNode],
+    make_owl: Callable[..., OwlNode],
     monkeypatch: pytest.MonkeyPatch,
     capfd: pytest.CaptureFixture[str],
 ) -> None:
@@ -182,7 +166,7 @@ def test_an_identity_parameter_says_that_it_keeps_tf_out(
     over TF, and the start-up line says how to get TF's rotation instead."""
     fake = FakeTf()
     monkeypatch.setitem(sys.modules, "tf2_ros", fake.module)
-    node = make_node(Parameter("camera_to_imu_rotation_xyzw", value=[0.0, 0.0, 0.0, 1.0]))
+    node = make_owl(PERIOD, Parameter("camera_to_imu_rotation_xyzw", value=[0.0, 0.0, 0.0, 1.0]))
     feed(node)
     wait_for(lambda: engine_rotation(node) is not None, "the engine")
     time.sleep(0.3)  # a few diagnostics periods, when TF would be looked up
@@ -196,14 +180,14 @@ def test_an_identity_parameter_says_that_it_keeps_tf_out(
 
 
 def test_a_parameter_set_while_tf_is_awaited_wins(
-    make_node: Callable[..., OwlNode],
+    make_owl: Callable[..., OwlNode],
     monkeypatch: pytest.MonkeyPatch,
     capfd: pytest.CaptureFixture[str],
 ) -> None:
     fake = FakeTf()
     fake.ready = False
     monkeypatch.setitem(sys.modules, "tf2_ros", fake.module)
-    node = make_node()
+    node = make_owl(PERIOD)
     feed(node)
     wait_for(lambda: len(fake.lookups) >= 2, "TF lookups")
     assert engine_rotation(node) == (0.0, 0.0, 0.0, 1.0)
@@ -219,7 +203,7 @@ def test_a_parameter_set_while_tf_is_awaited_wins(
 
 
 def test_without_tf2_ros_the_node_says_so_once(
-    make_node: Callable[..., OwlNode],
+    make_owl: Callable[..., OwlNode],
     monkeypatch: pytest.MonkeyPatch,
     capfd: pytest.CaptureFixture[str],
 ) -> None:
@@ -227,7 +211,7 @@ def test_without_tf2_ros_the_node_says_so_once(
     # fail the same way on a machine that has it
     monkeypatch.setitem(sys.modules, "tf2_ros", None)
     assert not tf_available()
-    node = make_node()
+    node = make_owl(PERIOD)
     feed(node)
     wait_for(lambda: engine_rotation(node) is not None, "the engine")
     time.sleep(0.3)  # a few diagnostics periods

@@ -557,22 +557,6 @@ def test_a_10_ms_imu_lag_warns_in_diagnostics_and_is_logged_once(
 # ---- QoS of the node object itself (in this process, its own context and domain) ----------
 
 
-@pytest.fixture
-def make_owl(rclpy_context: Context) -> Iterator[Callable[..., OwlNode]]:
-    nodes: list[OwlNode] = []
-
-    def make(*overrides: RclpyParameter, remaps: Sequence[str] = ()) -> OwlNode:
-        cli = ["--ros-args", *(a for r in remaps for a in ("-r", r))] if remaps else None
-        node = OwlNode(context=rclpy_context, parameter_overrides=list(overrides), cli_args=cli)
-        nodes.append(node)
-        return node
-
-    yield make
-    for node in nodes:
-        node.close()
-        node.destroy_node()
-
-
 def qos_of(node: Any, topic: str, publishers: bool) -> list[str]:
     """Reliability of ``node``'s own publishers (or subscriptions) on ``topic``."""
     infos = (
