@@ -23,6 +23,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
+from bags.cli import topic_name_problem
 from owl_core.engine import EngineOptions
 from owl_core.errors import OwlError
 from owl_core.tracker import TrackerOptions
@@ -694,19 +695,9 @@ def _check(p: Param, value: Any) -> str | None:
 
 
 def _topic_name_error(name: str) -> str | None:
-    """Why ``name`` is not a valid ROS 2 topic name (rcl's own rules), or None (also when
-    rclpy is not importable: then nothing subscribes to it)."""
-    try:
-        from rclpy.exceptions import InvalidTopicNameException
-        from rclpy.validate_topic_name import validate_topic_name
-    except ImportError:
-        return None
-    try:
-        validate_topic_name(name)
-    except InvalidTopicNameException as err:
-        why = str(err).splitlines()[0].removeprefix("Invalid topic name: ").rstrip(":")
-        return f"must be a valid topic name ({why}), got {name!r}"
-    return None
+    """Why ``name`` is not a topic name a node can resolve (rcl's own rules), or None."""
+    why = topic_name_problem(name, full=False)
+    return None if why is None else f"must be a valid topic name ({why}), got {name!r}"
 
 
 def validate(values: Mapping[str, Any], *, unknown_ok: bool = False) -> list[str]:

@@ -72,14 +72,19 @@ def join_negative_values(parser: argparse.ArgumentParser, args: Sequence[str]) -
     return out
 
 
-def topic_name_problem(name: str) -> str | None:
-    """Why rclpy refuses the fully qualified topic ``name`` (e.g. "topic name must not
-    contain characters other than alphanumerics, '_', or '/'"), or None if it is valid."""
-    from rclpy.exceptions import InvalidTopicNameException
-    from rclpy.validate_full_topic_name import validate_full_topic_name
-
+def topic_name_problem(name: str, full: bool = True) -> str | None:
+    """Why rclpy refuses the topic ``name`` (e.g. "topic name must not contain characters
+    other than alphanumerics, '_', or '/'"), or None if it is valid: as a fully qualified
+    name, or with ``full`` False as a name a node resolves (relative, ``~``, substitutions).
+    None too where rclpy is not importable (nothing could subscribe to it then)."""
     try:
-        validate_full_topic_name(name)
+        from rclpy.exceptions import InvalidTopicNameException
+        from rclpy.validate_full_topic_name import validate_full_topic_name
+        from rclpy.validate_topic_name import validate_topic_name
+    except ImportError:
+        return None
+    try:
+        (validate_full_topic_name if full else validate_topic_name)(name)
     except InvalidTopicNameException as err:
         first = str(err).splitlines()[0] if str(err) else "invalid topic name"
         return first.removeprefix("Invalid topic name: ").rstrip(":")
