@@ -208,6 +208,7 @@ class Pipeline:
         self._camera_error: str | None = None
         self._calibration: CalibrationMonitor | None = None
         self._uncovered_ns: int | None = None  # newest frame processed without its IMU
+        self._engine_faults = 0  # unexpected engine exceptions in a row
         self._imu_arrival_ns: int | None = None
         self._imu_frame_id = ""  # of the newest IMU message: the frame of owl/gyro_bias
         self._speeds: collections.deque[tuple[int, float]] = collections.deque(maxlen=SPEED_KEEP)
@@ -550,15 +551,26 @@ class Pipeline:
 
     def _run_engine(self, engine: OwlEngine, image: ImageFrame) -> FrameResult | None:
         try:
-            return engine.process(image)
+            result = engine.process(image)
         except OwlError as err:
             self._skip(Skip.ENGINE_ERROR, f"engine: {err}")
             return None
         except Exception as err:  # never let one frame stop the node; say what happened
-            self._skip(Skip.ENGINE_ERROR, f"engine: {type(err).__name__}: {err}")
+            # A fault in one frame's processing: its tracks and heading are suspect, the
+            # IMU history and the bias estimate (seconds to converge) are not, so they are
+            # kept. A second fault in a row resets everything: whatever keeps failing may
+            # live in the state kept.
+            self._engine_faults += 1
+            again = self._engine_faults > 1
+            what = "engine reset with its IMU history" if again else "tracks reset"
+            self._skip(Skip.ENGINE_ERROR, f"engine: {type(err).__name__}: {err} ({what})")
             self._jumps.forget_image()
-            engine.reset()
+            engine.reset(keep_gyro=not again)
+            if again:
+                self._engine_faults = 0
             return None
+        self._engine_faults = 0
+        return result
 
     def _process(self, frame: Frame, stamp: int, covered: bool) -> Output | None:
         engine = self._engine

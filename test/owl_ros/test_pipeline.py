@@ -760,3 +760,42 @@ def test_a_worker_error_is_an_error_of_its_window_and_a_total() -> None:
     rec = {r.name: r for r in pipeline.diagnostics()}["owl: processing"]
     assert rec.level != Level.ERROR and "worker errors" not in rec.message
     assert rec.value_map()["worker_errors_total"] == "2"
+
+
+def test_an_engine_fault_resets_the_tracks_and_keeps_the_imu(
+    feed: Feed, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An unexpected exception in one frame costs that frame and the tracks: the IMU history
+    and the bias estimate stay (the next frames have points again at once, with no wait for
+    new IMU); a second fault in a row resets the engine whole."""
+    pipe = make(options(feed))
+    evs = events(feed)
+    starts = [i for i, e in enumerate(evs) if e[1] is Role.IMAGE]
+    outs = run(pipe, evs[: starts[8]], flush=False)
+    engine = pipe._engine
+    assert engine is not None and with_points(outs)
+    real = engine.process
+    faults = iter([True, False, True, True])  # frame 8 fails; 9 ok; 10 and 11 fail
+
+    def process(image: Any) -> Any:
+        if next(faults, False):
+            raise ZeroDivisionError("injected")
+        return real(image)
+
+    monkeypatch.setattr(engine, "process", process)
+    samples = len(engine.gyro)
+    outs = run(pipe, evs[starts[8] : starts[9]], flush=False)
+    assert not outs
+    message, values, _ = diag(pipe, "processing")
+    assert values["skipped_engine_error_total"] == "1"
+    assert "ZeroDivisionError: injected (tracks reset)" in message + str(values)
+    assert engine.last_tracks is not None and len(engine.gyro) >= samples  # IMU kept
+    # frames 9 (ok), 10 and 11 (two faults in a row): the second resets the IMU history too
+    outs = run(pipe, evs[starts[9] : starts[11] + 1], flush=False)
+    assert len(outs) == 1 and outs[0].result.num_points == 0  # frame 9 starts tracks anew
+    assert len(pipe._engine.gyro) > 0
+    outs += run(pipe, evs[starts[11] + 1 : starts[12]], flush=False)
+    assert diag(pipe, "processing")[1]["skipped_engine_error_total"] == "3"
+    assert len(engine.gyro) < samples  # emptied at frame 11, refilled only since
+    outs = run(pipe, evs[starts[12] :], flush=True)
+    assert with_points(outs)  # and it recovers
