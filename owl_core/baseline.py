@@ -15,6 +15,9 @@ frame) of the same tracks, ``interval_s`` apart:
   constraint ``t . (e1 x R e0) = 0``: a 2-point RANSAC (``t = n_i x n_j``) and a least-squares
   refinement (smallest singular vector of the inliers' ``n_i``), sign chosen so that the
   derotated flow moves away from the heading (static points: ``(de/dt) . t <= 0``).
+  With a rolling shutter (``TwoViewBaseline``'s ``row_rotations``) each bearing is first
+  rotated from its own row's time into the camera orientation at the current stamp, as OWL
+  does (:mod:`owl_core.rolling_shutter`), and the pair is solved with the identity rotation.
 
 Both give per-point ``r/|t|`` for the current frame, an inlier mask (RANSAC outliers are the
 baseline's "moving" points) and the heading in the current camera optical frame. Pure numpy
@@ -38,6 +41,7 @@ import numpy.typing as npt
 from owl_core import heading_filter as hf
 from owl_core.camera import CameraModel
 from owl_core.errors import InvalidInputError
+from owl_core.rolling_shutter import ReadoutRotations
 from owl_core.tracker import Tracks
 from owl_core.types import PointFlag
 
@@ -57,6 +61,10 @@ __all__ = [
 
 #: Rotation provider for the gyro variant: (t0_ns, t1_ns) -> R_{1<-0} (3, 3), or None.
 RotationFn = Callable[[int, int], FloatArray | None]
+#: Row-time rotations for the gyro variant with a rolling shutter: (frame stamps (K,) int64
+#: ns, stamp ns) -> :class:`~owl_core.rolling_shutter.ReadoutRotations` into the camera
+#: frame at the stamp, or None where the gyro does not cover the frames' readouts.
+RowRotationFn = Callable[[npt.NDArray[np.int64], int], ReadoutRotations | None]
 
 #: ``cv2.recoverPose``'s ``distanceThresh``, in baselines: points triangulated farther
 #: count as at infinity and do not vote in the cheirality check that chooses between t
@@ -435,6 +443,12 @@ class TwoViewBaseline:
         rotation: for the gyro variant, a callable (t0_ns, t1_ns) -> R_{1<-0} (3, 3) or None
             when the gyro does not cover the interval (e.g. ``GyroBuffer.relative_rotation``
             guarded by ``covers``).
+        row_rotations: for the gyro variant with a rolling shutter, a callable (frame stamps,
+            stamp) -> :class:`~owl_core.rolling_shutter.ReadoutRotations` (e.g.
+            :func:`~owl_core.rolling_shutter.readout_rotations` guarded by ``covers``):
+            each bearing is derotated from its own row's time (row ``v`` of a frame
+            stamped ``s`` seen at ``s + (v / height) T``) instead of its frame's stamp.
+            None: a global shutter (or a baseline that ignores the readout).
     """
 
     def __init__(
@@ -442,12 +456,14 @@ class TwoViewBaseline:
         camera: CameraModel,
         options: BaselineOptions | None = None,
         rotation: RotationFn | None = None,
+        row_rotations: RowRotationFn | None = None,
     ) -> None:
         self.camera = camera
         self.options = options or BaselineOptions()
-        if self.options.method == "gyro" and rotation is None:
+        if self.options.method == "gyro" and rotation is None and row_rotations is None:
             raise InvalidInputError("the gyro baseline needs a rotation provider, got None")
         self._rotation = rotation
+        self._row_rotations = row_rotations if self.options.method == "gyro" else None
         self._focal = float(max(camera.fx, camera.fy))
         #: clock of ``timings["estimate"]``, s (``time.thread_time`` for CPU time)
         self.clock: Callable[[], float] = time.perf_counter
@@ -487,7 +503,15 @@ class TwoViewBaseline:
         interval = (stamp - int(stamps[gap])) * 1e-9
         e1 = self.camera.pixel_to_bearing(hist[both, 0])
         e0 = self.camera.pixel_to_bearing(hist[both, gap])
-        if opts.method == "gyro":
+        if self._row_rotations is not None:
+            grid = self._row_rotations(np.array([stamp, int(stamps[gap])], dtype=np.int64), stamp)
+            if grid is None:
+                return nothing("the gyro does not cover the readouts", interval)
+            height = float(self.camera.height)
+            e1 = grid.to_stamp(0, hist[both, 0][:, 1] / height, e1)
+            e0 = grid.to_stamp(1, hist[both, gap][:, 1] / height, e0)
+            est = gyro_two_view(e0, e1, np.eye(3), interval, self._focal, opts)
+        elif opts.method == "gyro":
             r_10 = self._rotation(int(stamps[gap]), stamp) if self._rotation else None
             if r_10 is None:
                 return nothing("the gyro does not cover the interval", interval)

@@ -72,6 +72,7 @@ from owl_core.baseline import BaselineFrame, BaselineOptions, FilteredBaseline, 
 from owl_core.camera import CameraModel
 from owl_core.engine import EngineOptions, OwlEngine
 from owl_core.errors import OwlError
+from owl_core.rolling_shutter import ReadoutRotations, readout_rotations
 from owl_core.types import FrameResult, GyroSamples, ImageFrame
 from owl_ros import params
 from owl_ros.heap import keep_freed_memory
@@ -596,13 +597,26 @@ def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = F
         bias = known_bias if known_bias is not None else engine.gyro_bias
         return gyro.relative_rotation(t0, t1, bias)
 
+    readout_ns = round(src.readout_s * 1e9)
+
+    def row_rotations(frames: npt.NDArray[np.int64], stamp: int) -> ReadoutRotations | None:
+        # A rolling shutter: the gyro-aided baselines derotate every point from its own
+        # row's time, as OWL does (a rotation per frame left them degrees off on brisk+rs30).
+        if not gyro.covers(int(frames.min()), max(int(frames.max()), stamp) + readout_ns):
+            return None
+        bias = known_bias if known_bias is not None else engine.gyro_bias
+        return readout_rotations(gyro, frames, stamp, readout_ns, bias)
+
     baselines: dict[str, TwoViewBaseline] = {}
     for g in GAPS:
         baselines[f"cv-5pt@{g}"] = TwoViewBaseline(
             src.camera, BaselineOptions(method="essential", gap_frames=g)
         )
         baselines[f"cv-gyro@{g}"] = TwoViewBaseline(
-            src.camera, BaselineOptions(method="gyro", gap_frames=g), rotation
+            src.camera,
+            BaselineOptions(method="gyro", gap_frames=g),
+            rotation,
+            row_rotations if readout_ns > 0 else None,
         )
     filtered = {
         name: (raw, FilteredBaseline(math.radians(sigma), rotation))
