@@ -543,6 +543,9 @@ class CaseRun:
     paired: dict[str, tuple[list[npt.NDArray[np.float64]], list[npt.NDArray[np.float64]]]] = field(
         default_factory=dict
     )
+    #: per baseline: (OWL's, the baseline's) heading errors, deg, on the frames where both
+    #: gave a heading (a common set of frames for the two medians)
+    heading_pairs: dict[str, tuple[list[float], list[float]]] = field(default_factory=dict)
 
 
 def run_case(
@@ -641,7 +644,8 @@ def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = F
         track_s = res.timings.get("track", 0.0)
         run.track_s += track_s
         run.estimate_s["owl"] += res.timings.get("total", 0.0) - track_s
-        run.scores["owl"].append(score_frame(owl_estimate(res), truth, src.truth_bias))
+        owl_score = score_frame(owl_estimate(res), truth, src.truth_bias)
+        run.scores["owl"].append(owl_score)
         if uncompensated is not None:
             plain = uncompensated.process(ImageFrame(stamp, image))
             run.estimate_s[UNCOMPENSATED] += plain.timings.get("total", 0.0)
@@ -658,6 +662,7 @@ def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = F
             out = outs[name] = base.process(tracks)
             run.estimate_s[name] += out.timings["estimate"]
             run.scores[name].append(score_frame(baseline_estimate(out), truth))
+            _pair_heading(run, name, owl_score, run.scores[name][-1])
             if truth.range_m is not None and truth.range_m.size:
                 pair = paired_range_errors(
                     res.ids, res.pixels, res.range_over_speed, out.ids, out.range_over_speed, truth
@@ -673,6 +678,7 @@ def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = F
             fout = flt.step(outs[raw])  # the same points and ranges: not paired again
             run.estimate_s[name] += fout.timings["estimate"]
             run.scores[name].append(score_frame(baseline_estimate(fout), truth))
+            _pair_heading(run, name, owl_score, run.scores[name][-1])
             if keep_results:
                 run.baseline_results[name].append(fout)
         if keep_results:
@@ -680,6 +686,14 @@ def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = F
     run.frames = count
     run.tracks_per_frame = n_tracks / max(run.frames, 1)
     return run
+
+
+def _pair_heading(run: CaseRun, method: str, owl: FrameScore, other: FrameScore) -> None:
+    """Keep OWL's and ``method``'s heading errors of one frame when both have one."""
+    if math.isfinite(owl.heading_deg) and math.isfinite(other.heading_deg):
+        mine, theirs = run.heading_pairs.setdefault(method, ([], []))
+        mine.append(owl.heading_deg)
+        theirs.append(other.heading_deg)
 
 
 def merge_runs(runs: Sequence[CaseRun]) -> CaseRun:
@@ -703,6 +717,10 @@ def merge_runs(runs: Sequence[CaseRun]) -> CaseRun:
             both = out.paired.setdefault(m, ([], []))
             both[0].extend(mine)
             both[1].extend(theirs)
+        for m, (h_mine, h_theirs) in r.heading_pairs.items():
+            h_both = out.heading_pairs.setdefault(m, ([], []))
+            h_both[0].extend(h_mine)
+            h_both[1].extend(h_theirs)
     out.tracks_per_frame = sum(r.tracks_per_frame * r.frames for r in runs) / max(out.frames, 1)
     return out
 
@@ -741,10 +759,26 @@ def _paired_row(run: CaseRun, method: str) -> dict[str, Any] | None:
     }
 
 
+def _heading_paired_row(run: CaseRun, method: str) -> dict[str, Any] | None:
+    """Heading errors of OWL and of baseline ``method`` on the frames both gave a heading
+    for: {"frames", "owl_median", "owl_p90", "median", "p90"} (deg), or None."""
+    mine, theirs = run.heading_pairs.get(method, ([], []))
+    if not mine:
+        return None
+    return {
+        "frames": len(mine),
+        "owl_median": float(np.median(mine)),
+        "owl_p90": float(np.percentile(mine, 90)),
+        "median": float(np.median(theirs)),
+        "p90": float(np.percentile(theirs, 90)),
+    }
+
+
 def _method_row(run: CaseRun, method: str) -> dict[str, Any]:
     s = summarize(run.scores[method], run.has_mask)
     if method != "owl":
         s["range_paired"] = _paired_row(run, method)
+        s["heading_paired"] = _heading_paired_row(run, method)
     total = run.track_s + run.estimate_s[method]
     s["fps"] = run.frames / total if total > 0 else None
     s["estimate_ms_per_frame"] = 1e3 * run.estimate_s[method] / max(run.frames, 1)
@@ -774,7 +808,10 @@ def best_baselines(methods: dict[str, dict[str, Any]]) -> dict[str, Any]:
     gave a range for), "owl_heading_ok" (OWL heading median and p90 <= the lowest median
     and p90 over every baseline and gap; None without a translating frame),
     "owl_range_ok" (on the tracks both gave a range for, OWL's r/|t| median and p90 <=
-    the baseline's, for every baseline and gap; None when nothing is scored).
+    the baseline's, for every baseline and gap; None when nothing is scored),
+    "owl_heading_paired_ok" (the same for the heading on the frames OWL and the baseline
+    both gave one for: each median over one set of frames; None when no frame is shared),
+    "owl_heading_paired_ok_filtered" (the same against the filtered baselines only).
     """
     base = [m for m in methods if not m.startswith("owl")]
     out: dict[str, Any] = {}
@@ -795,6 +832,21 @@ def best_baselines(methods: dict[str, dict[str, Any]]) -> dict[str, Any]:
     else:
         out["owl_heading_ok"] = bool(
             owl["false_heading_frames"] <= min(methods[m]["false_heading_frames"] for m in base)
+        )
+    # the heading on the same frames: against each baseline, where both gave one
+    hp = {m: methods[m].get("heading_paired") for m in base}
+    hp = {m: p for m, p in hp.items() if p}
+    for key, members in (
+        ("owl_heading_paired_ok", list(hp)),
+        ("owl_heading_paired_ok_filtered", [m for m in hp if "+kf" in m]),
+    ):
+        out[key] = (
+            all(
+                hp[m]["owl_median"] <= hp[m]["median"] and hp[m]["owl_p90"] <= hp[m]["p90"]
+                for m in members
+            )
+            if members
+            else None
         )
     # r/|t| on the same tracks: against each baseline, on the points both gave a range for
     pairs = {m: methods[m].get("range_paired") for m in base}
@@ -1045,7 +1097,8 @@ def report_lines(doc: dict[str, Any]) -> list[str]:
         lines.append(
             f"  {c['case']} ({c['frames']} frames; best baseline: {best['heading']}, best "
             f"r/|t|: {best['range']}; OWL <= every baseline: heading "
-            f"{_yes(best['owl_heading_ok'])}, r/|t| {_yes(best['owl_range_ok'])})"
+            f"{_yes(best['owl_heading_ok'])}, on the frames both gave one "
+            f"{_yes(best.get('owl_heading_paired_ok'))}, r/|t| {_yes(best['owl_range_ok'])})"
         )
         for name, s in c["methods"].items():
             mark = "*" if name in (best["heading"], best["range"]) else " "

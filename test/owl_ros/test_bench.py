@@ -217,6 +217,22 @@ def test_best_baseline_is_the_lowest_heading_median_and_owl_is_judged_against_ev
     for m in bench.METHODS:
         methods[m]["range_paired"] = None
     assert bench.best_baselines(methods)["owl_range_ok"] is None
+    # the heading on common frames: each median over the frames both gave a heading for
+    assert best["owl_heading_paired_ok"] is None  # no baseline shares a frame with OWL
+    for m in bench.METHODS:
+        methods[m]["heading_paired"] = {
+            "frames": 50, "owl_median": 0.3, "owl_p90": 0.5, "median": 0.4, "p90": 0.6
+        }  # fmt: skip
+    methods["owl"].pop("heading_paired")
+    best = bench.best_baselines(methods)
+    assert best["owl_heading_paired_ok"] is True and best["owl_heading_paired_ok_filtered"]
+    # on its own frames cv-5pt@1 looks no better than OWL, on the common ones it is
+    methods["cv-5pt@1"]["heading_paired"]["median"] = 0.25
+    best = bench.best_baselines(methods)
+    assert best["owl_heading_paired_ok"] is False
+    assert best["owl_heading_paired_ok_filtered"] is True  # the unfiltered one lost it
+    methods["cv-5pt@1+kf0.2"]["heading_paired"]["p90"] = 0.45
+    assert bench.best_baselines(methods)["owl_heading_paired_ok_filtered"] is False
 
 
 def test_bag_source_scores_exactly_as_the_in_memory_frames(tmp_path):
