@@ -7,7 +7,8 @@ on each frame's very tracks (``OwlEngine.last_tracks``) OpenCV's 5-point essenti
 frames earlier. Per frame where both give a heading, the angle between them (degrees) is
 the disagreement; its median and 90th percentile are reported per gap. As a yardstick of
 the two-view estimates' own scatter on the same frames, the gyro-aided two-view heading
-(derotated with the raw gyro, translation only) is compared with the 5-point one too.
+(derotated with the gyro less the bias OWL has estimated by then, translation only) is
+compared with the 5-point one too.
 
 On the frames where all three give a heading the two disagreements are paired: the excess
 ``median(OWL vs 5-point) - median(gyro-aided vs 5-point)`` and its 90 % interval from a
@@ -131,7 +132,11 @@ def heading_agreement(
         buffer = engine.gyro
 
         def rotation(t0: int, t1: int) -> Any:
-            return buffer.relative_rotation(t0, t1) if buffer.covers(t0, t1) else None
+            # the bias OWL has estimated by then: the stronger yardstick (the raw gyro
+            # leaves a real gyro's bias in the derotation)
+            if not buffer.covers(t0, t1):
+                return None
+            return buffer.relative_rotation(t0, t1, engine.gyro_bias)
 
         gyro_baselines = {
             g: TwoViewBaseline(camera, BaselineOptions(method="gyro", gap_frames=g), rotation)
