@@ -8,7 +8,8 @@ IMU, so the biased and unbiased rows share them). Then one pass over the frames:
 1. the OWL engine (:class:`owl_core.engine.OwlEngine`) processes the image and the gyro;
 2. on exactly the engine's tracks of that frame, the baseline runs at each frame gap of
    :data:`GAPS` (1, 2 and 4: the current frame paired with the one that many frames
-   earlier) in two variants (:mod:`owl_core.baseline`): OpenCV's 5-point essential matrix
+   earlier; a camera faster than 30 Hz also at the gap spanning 4 frames' time at 30 Hz,
+   :func:`case_gaps`) in two variants (:mod:`owl_core.baseline`): OpenCV's 5-point essential matrix
    + recoverPose + triangulation ("cv-5pt@G"), and the gyro-aided translation-only variant
    ("cv-gyro@G", derotated with the same gyro, less the true bias where the case knows it,
    else the bias OWL has estimated by then); each of them also through OWL's own heading
@@ -92,6 +93,11 @@ PROG = "owl_bench"
 #: frames earlier): 1 is the strongest two-view estimate on straight motion, 4 has more
 #: parallax but lags on curving paths.
 GAPS = (1, 2, 4)
+#: The frame rate at which :data:`GAPS` were chosen, Hz. A faster camera's case also runs
+#: the gap that spans what 4 frames span here (60 Hz: 8 frames), as far as the tracks'
+#: history reaches (:func:`case_gaps`), so that a fast camera does not leave the baselines
+#: only short gaps.
+GAPS_RATE_HZ = 30.0
 BASELINES = ("cv-5pt", "cv-gyro")
 #: The measurement 1-sigmas (deg) at which each baseline's heading also runs through OWL's
 #: own heading filter (:class:`owl_core.baseline.FilteredBaseline`; "cv-5pt@1+kf0.2", ...):
@@ -548,6 +554,21 @@ class CaseRun:
     heading_pairs: dict[str, tuple[list[float], list[float]]] = field(default_factory=dict)
 
 
+def case_gaps(rate_hz: float, history: int) -> tuple[int, ...]:
+    """The frame gaps the baselines run at for a camera at ``rate_hz``: :data:`GAPS`, and
+    for a camera faster than :data:`GAPS_RATE_HZ` also the gap spanning the time of the
+    longest one there, capped at ``history - 1`` (the oldest position a track keeps)."""
+    longest = min(round(max(GAPS) * rate_hz / GAPS_RATE_HZ), history - 1)
+    return tuple(sorted({*GAPS, longest})) if rate_hz > GAPS_RATE_HZ else GAPS
+
+
+def _methods(gaps: Sequence[int]) -> tuple[tuple[str, ...], tuple[tuple[str, str, float], ...]]:
+    """Method names (OWL first) and the filtered settings (name, raw, sigma) for ``gaps``."""
+    two_view = tuple(f"{b}@{g}" for b in BASELINES for g in gaps)
+    filtered = tuple((f"{m}+kf{s:g}", m, s) for m in two_view for s in FILTER_SIGMAS_DEG)
+    return ("owl", *two_view, *(f[0] for f in filtered)), filtered
+
+
 def run_case(
     case: Case,
     profile: Profile,
@@ -576,9 +597,9 @@ def _source_engine(src: Source, profile: Profile, readout_s: float) -> OwlEngine
 
 
 def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = False) -> CaseRun:
-    """Run OWL and both baselines at every gap of :data:`GAPS` over ``src``, on the same
-    tracks, and score them with the same owl_eval functions. Rolling-shutter images: OWL
-    compensates the readout ("owl"), and runs once more ignoring it
+    """Run OWL and both baselines at every gap of :func:`case_gaps` over ``src``, on the
+    same tracks, and score them with the same owl_eval functions. Rolling-shutter images:
+    OWL compensates the readout ("owl"), and runs once more ignoring it
     (:data:`UNCOMPENSATED`, on its own tracks)."""
     engine = _source_engine(src, profile, src.readout_s)
     clock = time.process_time if profile.clock == "cpu" else time.perf_counter
@@ -610,8 +631,11 @@ def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = F
         bias = known_bias if known_bias is not None else engine.gyro_bias
         return readout_rotations(gyro, frames, stamp, readout_ns, bias)
 
+    history = max(engine.options.tracker.history_len, engine.options.fit_frames)  # as OWL's
+    gaps = case_gaps(case.rate_hz or profile.rate_hz, history)
+    names, filtered_settings = _methods(gaps)
     baselines: dict[str, TwoViewBaseline] = {}
-    for g in GAPS:
+    for g in gaps:
         baselines[f"cv-5pt@{g}"] = TwoViewBaseline(
             src.camera, BaselineOptions(method="essential", gap_frames=g)
         )
@@ -623,11 +647,11 @@ def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = F
         )
     filtered = {
         name: (raw, FilteredBaseline(math.radians(sigma), rotation))
-        for name, raw, sigma in FILTERED
+        for name, raw, sigma in filtered_settings
     }
     for _, flt in filtered.values():
         flt.clock = clock
-    methods = (*METHODS, UNCOMPENSATED) if uncompensated is not None else METHODS
+    methods = (*names, UNCOMPENSATED) if uncompensated is not None else names
     run = CaseRun(case, src.num_frames, {m: [] for m in methods})
     run.has_mask = src.has_mask
     run.estimate_s = dict.fromkeys(methods, 0.0)
@@ -866,9 +890,11 @@ def case_report(run: CaseRun) -> dict[str, Any]:
     best baselines (:func:`best_baselines`)."""
     stages = {k: 1e3 * v / max(run.frames, 1) for k, v in run.owl_stage_s.items()}
     methods = {m: _method_row(run, m) for m in run.scores}
+    gaps = sorted({int(m.split("@")[1]) for m in methods if m.startswith("cv-") and "+" not in m})
     return {
         "case": run.case.label,
         "scenario": run.case.scenario,
+        "gaps": gaps,
         "gyro_bias_rad_s": run.case.bias,
         "frames": run.frames,
         "tracks_per_frame": run.tracks_per_frame,

@@ -181,6 +181,17 @@ def test_an_engine_setting_runs_owl_and_its_tracks_with_it(capsys, tmp_path):
         assert err.count("\n") == 1 and err.startswith("owl_bench: error: ") and says in err, err
 
 
+def test_a_fast_camera_adds_the_gap_spanning_what_4_frames_span_at_30_hz():
+    assert bench.case_gaps(30.0, 10) == bench.GAPS == (1, 2, 4)
+    assert bench.case_gaps(10.0, 10) == (1, 2, 4)  # a slow camera's gaps are longer already
+    assert bench.case_gaps(60.0, 10) == (1, 2, 4, 8)
+    assert bench.case_gaps(60.0, 8) == (1, 2, 4, 7)  # as far as the tracks' history reaches
+    assert bench.case_gaps(45.0, 10) == (1, 2, 4, 6)
+    names, filtered = bench._methods((1, 2, 4, 8))
+    assert names[0] == "owl" and "cv-gyro@8" in names and "cv-5pt@8+kf0.2" in names
+    assert len(filtered) == 2 * 4 * len(bench.FILTER_SIGMAS_DEG)
+
+
 def test_best_baseline_is_the_lowest_heading_median_and_owl_is_judged_against_every_gap():
     def row(h50, h90, r50, r90, paired=None):
         return {
