@@ -308,7 +308,8 @@ class CameraModel:
             else:
                 x, y = self._undistort_radtan(xd, yd)
             v = np.stack([x, y, np.ones_like(x)], axis=-1)
-            result: FloatArray = v / np.linalg.norm(v, axis=-1, keepdims=True)
+            norm = np.sqrt(x * x + y * y + 1.0)  # np.linalg.norm(v, axis=-1), faster
+            result: FloatArray = v / norm[..., None]
         return result
 
     # ---------------------------------------------------------------- helpers

@@ -853,7 +853,7 @@ class OwlEngine:
             return
         prev = self._state.speed_state
         s_ids, s_points = ids[static], points[static]
-        tau = float(np.median(tau_ref[static])) if s_ids.size else 0.0
+        tau = float(motion.median(tau_ref[static])) if s_ids.size else 0.0
         self._state.speed_state = (stamp, s_ids, s_points, headings[static], tau)
         increment: float | None = None
         dt_ref = 0.0
@@ -861,13 +861,15 @@ class OwlEngine:
             p_stamp, p_ids, p_points, p_headings, p_tau = prev
             dt = (stamp - p_stamp) * 1e-9
             dt_ref = dt + tau - p_tau
-            _, now_idx, prev_idx = np.intersect1d(s_ids, p_ids, return_indices=True)
+            rows, found = _match_ids(p_ids, s_ids)
+            now_idx = np.flatnonzero(found)
+            prev_idx = rows[now_idx]
             if dt > 0 and now_idx.size >= 20:
-                predicted = np.linalg.norm(p_points[prev_idx] - p_headings[prev_idx] * dt, axis=1)
-                measured = np.linalg.norm(s_points[now_idx], axis=1)
+                predicted = motion.row_norms(p_points[prev_idx] - p_headings[prev_idx] * dt)
+                measured = motion.row_norms(s_points[now_idx])
                 good = (predicted > 0) & (measured > 0)
                 if np.count_nonzero(good) >= 20:
-                    increment = float(np.median(np.log(predicted[good] / measured[good])))
+                    increment = float(motion.median(np.log(predicted[good] / measured[good])))
         self._speed_filter.step(stamp, increment, dt_ref, tau)
 
     def _heading_now(
@@ -1113,7 +1115,7 @@ class OwlEngine:
         usable_col = stamps >= 0
         end = stamp + self._readout_ns  # the last row of this frame with a rolling shutter
         covered = [k for k in columns[1:] if self._gyro.covers(int(stamps[k]), end)]
-        usable_col[np.setdiff1d(columns[1:], covered)] = False
+        usable_col[[k for k in columns[1:] if k not in covered]] = False
         if covered:  # one integration back over the whole fit window
             rotations[covered] = self._gyro.relative_rotations(stamps[covered], stamp, bias)
         notes: list[str] = []
@@ -1180,7 +1182,7 @@ class OwlEngine:
         else:  # column k rotated by rotations[k] (a batched matmul: ~10x faster than einsum)
             by_col = np.matmul(bearings_h.transpose(1, 0, 2), rotations[:w].transpose(0, 2, 1))
             bearings_h = np.ascontiguousarray(by_col.transpose(1, 0, 2))  # (N, W, 3)
-        mask = np.all(np.isfinite(bearings_h), axis=2) & usable_col[None, :w]
+        mask = motion.all_finite(bearings_h) & usable_col[None, :w]
         enough = mask.sum(axis=1) >= min_frames
         enough &= mask[:, 0]
         tau_rate = None
@@ -1294,7 +1296,7 @@ class OwlEngine:
         args = (
             stamp,
             heading_ref,
-            float(np.median(integ.tau_ref)),
+            float(motion.median(integ.tau_ref)),
             est.heading_sigma_rad,
             integ.stamps,
             integ.rotations,
@@ -1367,7 +1369,8 @@ class OwlEngine:
                 # measurements themselves (the filtered speed rate lags an acceleration)
                 both = found & usable & (r_pred > 0) & (ranges > 0)
                 if np.count_nonzero(both) >= 20:
-                    r_pred = r_pred * float(np.exp(np.median(np.log(ranges[both] / r_pred[both]))))
+                    log_ratio = np.log(ranges[both] / r_pred[both])
+                    r_pred = r_pred * float(np.exp(motion.median(log_ratio)))
                 rel_pred = np.sqrt(p_rel[rows] ** 2 + opts.range_process_rel**2 * dt)
                 # fused in inverse range (the noise of |ToR| is closer to Gaussian there)
                 inv_p = 1.0 / np.where(r_pred > 0, r_pred, np.nan)
@@ -1423,7 +1426,7 @@ class OwlEngine:
         nb_safe = np.where(nb_mask, nb, 0)
         # neighbours must refer to the same time (tracks of different lengths do not)
         nb_mask &= np.abs(integ.tau_ref[nb_safe] - integ.tau_ref[:, None]) < 1e-4
-        noise = math.sqrt(2.0) * float(np.median(integ.f_sigma))
+        noise = math.sqrt(2.0) * float(motion.median(integ.f_sigma))
         return motion.fit_local_looming(
             integ.e,
             f,
@@ -1447,7 +1450,7 @@ class OwlEngine:
         # A static point's omega is a positive multiple of e x heading (it lies in front of
         # the camera): a clearly negative multiple is something moving against the flow.
         exh = motion.cross(e, heading_ref)
-        sin = np.linalg.norm(exh, axis=1)
+        sin = motion.row_norms(exh)
         along = np.einsum("ni,ni->n", omega, exh) / np.maximum(sin, 1e-12)
         along_sigma = (
             opts.moving_sigma if opts.moving_along_sigma is None else opts.moving_along_sigma
@@ -1501,7 +1504,7 @@ class OwlEngine:
         h_ref_i = np.where(at_ref.valid[:, None], at_ref.heading, 0.0)
         h_now_i = h_ref_i @ turn.T
         point_now = at_ref.points + 0.5 * (h_ref_i + h_now_i) * tau_ref[:, None]
-        range_over_speed_now = np.linalg.norm(point_now, axis=1)
+        range_over_speed_now = motion.row_norms(point_now)
         ahead = np.einsum("ni,ni->n", point_now, e_now) > 0
         ok_now = at_ref.valid & ahead & (range_over_speed_now > 0)
         h_i = np.where(ok_now[:, None], h_now_i, 0.0)
@@ -1651,9 +1654,9 @@ class OwlEngine:
             return f
         h = headed.heading_ref
         cos = integ.e @ h
-        sin = np.linalg.norm(motion.cross(integ.e, h[None, :]), axis=1)
+        sin = motion.row_norms(motion.cross(integ.e, h[None, :]))
         near = sin < self.options.heading_min_sin
-        looming = np.where(near, 0.0, np.linalg.norm(f, axis=1) * cos / np.where(near, 1.0, sin))
+        looming = np.where(near, 0.0, motion.row_norms(f) * cos / np.where(near, 1.0, sin))
         scale = 1.0 - 2.0 * looming * (integ.tau_rate - integ.tau_ref)
         out: FloatArray = f * scale[:, None]
         return out

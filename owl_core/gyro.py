@@ -42,6 +42,7 @@ import numpy.typing as npt
 
 from owl_core.errors import CalibrationError, InvalidInputError, TimeError
 from owl_core.geometry import quat_xyzw_to_matrix, so3_exp, so3_log
+from owl_core.motion import cross, row_norms
 from owl_core.types import GyroSamples
 
 FloatArray = npt.NDArray[np.float64]
@@ -502,8 +503,8 @@ def _magnus_steps(
         the number of sub-steps of each piece.
     """
     dw = wb - wa
-    size = np.linalg.norm(wa, axis=1) + np.linalg.norm(wb, axis=1)
-    err = h**3 * np.linalg.norm(dw, axis=1) * size**2 / 720.0
+    size = row_norms(wa) + row_norms(wb)
+    err = h**3 * row_norms(dw) * size**2 / 720.0
     m = np.clip(np.ceil(np.cbrt(err / _STEP_TOL)), 1, _MAX_SUBSTEPS).astype(np.int64)
     piece = np.repeat(np.arange(h.shape[0]), m)
     j = np.arange(piece.shape[0]) - np.repeat(np.cumsum(m) - m, m)
@@ -513,5 +514,5 @@ def _magnus_steps(
     w2 = wa[piece] + dw[piece] * ((j + _GAUSS_HI) / mp)[:, None]
     result: FloatArray = -0.5 * hs[:, None] * (w1 + w2) + (_SQRT3 / 12.0) * (hs * hs)[
         :, None
-    ] * np.cross(w2, w1)
+    ] * cross(w2, w1)
     return result, m

@@ -29,7 +29,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from owl_core.errors import InvalidInputError
-from owl_core.motion import MAD_TO_SIGMA, cross
+from owl_core.motion import MAD_TO_SIGMA, all_finite, cross, median, row_norms
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -173,11 +173,22 @@ def coplanarity_residuals(
         raise InvalidInputError(f"heading must have shape (3,) or (M, 3), got {h.shape}")
     if rotation_error is not None:
         f = f + cross(np.asarray(rotation_error, dtype=np.float64), e)
-    n = cross(e, f)
+    return _coplanarity(h, e, cross(e, f), min_sin)
+
+
+def _coplanarity(h: FloatArray, e: FloatArray, n: FloatArray, min_sin: float) -> FloatArray:
+    """:func:`coplanarity_residuals` of the headings ``h`` (3,) or (M, 3) from the bearings
+    ``e`` (N, 3) and their ``n = e x f`` (N, 3): (N,) or (M, N), 1/s."""
     num = h @ n.T
     hn = h / np.linalg.norm(h, axis=-1, keepdims=True)
-    sin = np.sqrt(np.maximum(1.0 - (hn @ e.T) ** 2, 0.0))  # |h x e| for unit e
-    return np.asarray(num / np.maximum(sin, min_sin), dtype=np.float64)
+    # sin = |h x e| for unit e, floored at min_sin; in place (M x N for M hypotheses)
+    sin = hn @ e.T
+    np.square(sin, out=sin)
+    np.subtract(1.0, sin, out=sin)
+    np.maximum(sin, 0.0, out=sin)
+    np.sqrt(sin, out=sin)
+    np.maximum(sin, min_sin, out=sin)
+    return np.asarray(np.divide(num, sin, out=num), dtype=np.float64)
 
 
 def _rotation_only(
@@ -257,7 +268,7 @@ def _refine(
         res = raw * inv_scale
         k = 1.0
         if opts.adaptive_scale:
-            k = float(np.clip(MAD_TO_SIGMA * np.median(np.abs(res)), *SCALE_RANGE))
+            k = min(max(MAD_TO_SIGMA * float(median(np.abs(res))), SCALE_RANGE[0]), SCALE_RANGE[1])
         if it < opts.irls_iterations:
             w = 1.0 / (1.0 + (res / (k * opts.cauchy_sigma)) ** 2)
         else:
@@ -309,14 +320,18 @@ def _heading_starts(
     m = opts.ransac_hypotheses
     pairs = rng.integers(0, es.shape[0], size=(m, 2))
     hyp = cross(nvec[pairs[:, 0]], nvec[pairs[:, 1]])
-    hn = np.linalg.norm(hyp, axis=1)
+    hn = row_norms(hyp)
     hyp = hyp[hn > 0] / hn[hn > 0, None]
     if hyp.shape[0] == 0:
         hyp = np.array([[0.0, 0.0, 1.0]])
-    res_h = coplanarity_residuals(hyp, es, fs, min_sin=opts.min_sin) / ss
+    res_h = _coplanarity(hyp, es, nvec, opts.min_sin)  # (hypotheses, M), 1/s
     # Prior rotation uncertainty widens the gate: delta moves each residual by up to |delta|.
-    gate = opts.inlier_sigma + np.sqrt(np.trace(prior)) / np.median(ss)
-    score = np.sum(np.minimum((res_h / gate) ** 2, 1.0), axis=1)  # MSAC
+    gate = opts.inlier_sigma + np.sqrt(np.trace(prior)) / median(ss)
+    # MSAC: sum of min((res / ss / gate)^2, 1), in place
+    res_h /= ss
+    res_h /= gate
+    np.square(res_h, out=res_h)
+    score = np.minimum(res_h, 1.0, out=res_h).sum(axis=1)
     order = np.argsort(score)
     starts: list[FloatArray] = []
     if initial_heading is not None:
@@ -461,7 +476,7 @@ def estimate_motion(
     )
     n = e.shape[0]
     rng = rng or np.random.default_rng(0)
-    usable = np.all(np.isfinite(e), axis=1) & np.all(np.isfinite(f), axis=1)
+    usable = all_finite(e) & all_finite(f)
     usable &= np.isfinite(sigma) & (sigma > 0)
     residuals = np.full(n, np.nan)
     none_inliers = np.zeros(n, dtype=bool)
@@ -483,13 +498,13 @@ def estimate_motion(
 
     # 1. Does a rotation alone explain the flow?
     rot_delta, rot_cov, rot_res = _rotation_only(es, fs, ss, prior_inv)
-    robust_rms = float(np.median(rot_res)) / 1.1774  # median of a chi(2) variable
-    flow_snr = float(np.median(np.linalg.norm(fs, axis=1) / ss))
+    robust_rms = float(median(rot_res)) / 1.1774  # median of a chi(2) variable
+    flow_snr = float(median(row_norms(fs) / ss))
     if robust_rms < opts.still_ratio:
         r_all = fu - cross(eu, rot_delta)
         inl = np.zeros(n, dtype=bool)
         inl[usable] = np.sqrt(np.einsum("na,na->n", r_all, r_all)) / su < opts.inlier_sigma * 1.5
-        hidden = robust_rms * float(np.median(ss))
+        hidden = robust_rms * float(median(ss))
         rot_delta, rot_cov = _with_hidden_translation(rot_delta, rot_cov, prior_inv, hidden)
         why = f"(residual {robust_rms:.2f} sigma, flow {flow_snr:.1f} sigma)"
         return MotionEstimate(
@@ -608,11 +623,11 @@ def depth_edge_weights(
     if n < 2:
         return np.ones(n)
     sigma = np.broadcast_to(np.asarray(rate_sigma, dtype=np.float64), (n,))
-    mag = np.linalg.norm(f, axis=1)
+    mag = row_norms(f)
     measured = mag > 3.0 * sigma
     log_q = np.log(np.maximum(mag, 1e-300))
     if heading is not None:
-        sin = np.linalg.norm(cross(np.asarray(heading, dtype=np.float64), e), axis=1)
+        sin = row_norms(cross(np.asarray(heading, dtype=np.float64), e))
         measured &= sin > min_sin
         log_q -= np.log(np.maximum(sin, 1e-300))
     k = min(neighbours + 1, n)
@@ -633,7 +648,7 @@ def depth_edge_weights(
     scale = log_scale
     others = pair & (nb != itself)
     if spread_factor > 0 and others.any():
-        scale = max(log_scale, spread_factor * MAD_TO_SIGMA * float(np.median(diff[others])))
+        scale = max(log_scale, spread_factor * MAD_TO_SIGMA * float(median(diff[others])))
     score = np.nan_to_num(diff.max(axis=1), nan=0.0)
     return np.asarray(1.0 / (1.0 + (score / scale) ** 4), dtype=np.float64)
 
@@ -867,7 +882,7 @@ class GyroBiasFilter:
         claimed = float(np.mean(inflation / vals[ok]))
         self._claimed = claimed if self._claimed == 0.0 else 0.9 * self._claimed + 0.1 * claimed
         old = self.model_variance
-        new = max(float(np.median(np.concatenate(self._excess))), 0.0)
+        new = max(float(median(np.concatenate(self._excess))), 0.0)
         if new > old:  # never shrink: a window of calm frames proves less than the rest
             self.cov = self.cov * ((self._claimed + new) / (self._claimed + old))
         self.model_variance = new

@@ -38,6 +38,7 @@ import numpy as np
 import numpy.typing as npt
 
 from owl_core.errors import InvalidInputError
+from owl_core.motion import cross
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -62,8 +63,8 @@ def tangent_basis(h: FloatArray) -> tuple[FloatArray, FloatArray]:
     else:
         u1 = np.array([-y, x, 0.0])
     u1 /= math.sqrt(float(u1 @ u1))
-    u2 = np.cross(h, u1)
-    return u1, u2 / float(np.linalg.norm(u2))
+    u2 = np.array([y * u1[2] - z * u1[1], z * u1[0] - x * u1[2], x * u1[1] - y * u1[0]])  # h x u1
+    return u1, u2 / math.sqrt(float(u2 @ u2))
 
 
 def _unit(v: FloatArray) -> FloatArray:
@@ -72,7 +73,7 @@ def _unit(v: FloatArray) -> FloatArray:
 
 def _transport(h_old: FloatArray, h_new: FloatArray, vectors: FloatArray) -> FloatArray:
     """Move tangent vectors (K, 3) at h_old to h_new by the minimal rotation h_old -> h_new."""
-    axis = np.cross(h_old, h_new)
+    axis = cross(h_old, h_new)
     s = float(np.linalg.norm(axis))
     c = float(h_old @ h_new)
     if s < 1e-12:

@@ -52,6 +52,67 @@ def cross(a: npt.ArrayLike, b: npt.ArrayLike) -> FloatArray:
     return np.stack([x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0], axis=-1)
 
 
+def row_norms(v: FloatArray) -> FloatArray:
+    """Euclidean norms of vectors of 2 or 3 components, ``np.linalg.norm(v, axis=-1)``.
+
+    The same values (the squares summed in the same order), several times faster on such
+    short rows than a reduction over the last axis.
+
+    Args:
+        v: (..., 2) or (..., 3) float64 vectors.
+
+    Returns:
+        (...,) float64 norms.
+    """
+    squares = v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1]
+    if v.shape[-1] == 3:
+        squares += v[..., 2] * v[..., 2]
+    out: FloatArray = np.sqrt(squares)
+    return out
+
+
+def all_finite(v: FloatArray) -> BoolArray:
+    """Whether every component of each vector is finite, ``np.all(np.isfinite(v), axis=-1)``,
+    one component at a time (a reduction over a short last axis costs several times more).
+
+    Args:
+        v: (..., K) float64 vectors, K >= 1 (a few components).
+
+    Returns:
+        (...,) bool.
+    """
+    out: BoolArray = np.isfinite(v[..., 0])
+    for i in range(1, v.shape[-1]):
+        out &= np.isfinite(v[..., i])
+    return out
+
+
+def median(values: FloatArray) -> np.float64:
+    """:func:`np.median` of a 1-D float64 array, the same value (NaN if any entry is), at a
+    fraction of its cost on a frame's arrays (its general machinery for axes, output
+    arrays and the NaN check costs more than the partition itself).
+
+    Args:
+        values: (N,) float64.
+
+    Returns:
+        The median, a float64 scalar: the mean of the two middle values for even N (NaN
+        for N = 0, with NumPy's warning).
+    """
+    n = values.shape[0]
+    if n == 0:
+        return np.float64(np.median(values))
+    mid = n // 2
+    if n % 2:
+        part = np.partition(values, (mid, -1))  # the largest last: NaN if there is one
+        result = part[mid]
+    else:
+        part = np.partition(values, (mid - 1, mid, -1))
+        result = (part[mid - 1] + part[mid]) / 2.0
+    last = part[-1]
+    return np.float64(last if np.isnan(last) else result)
+
+
 def _as_vectors(name: str, value: npt.ArrayLike, dim: int = 3) -> FloatArray:
     arr = np.asarray(value, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != dim:
@@ -161,7 +222,7 @@ def owl_quantities(
         raise InvalidInputError(f"min_tor must be >= 0, got {min_tor}")
     tor = np.concatenate([lo[:, None], w], axis=1)
     norm2 = np.einsum("ij,ij->i", tor, tor)
-    finite = np.isfinite(norm2) & np.all(np.isfinite(e), axis=1)
+    finite = np.isfinite(norm2) & all_finite(e)
     valid = finite & (norm2 > min_tor * min_tor)
     safe2 = np.where(valid, norm2, 1.0)
     norm = np.sqrt(safe2)
@@ -169,7 +230,7 @@ def owl_quantities(
     range_over_speed = 1.0 / norm
     points = e * range_over_speed[:, None]
     heading = (lo[:, None] * e + cross(w, e)) / norm[:, None]
-    alpha = np.arctan2(np.linalg.norm(w, axis=1), lo)
+    alpha = np.arctan2(row_norms(w), lo)
     nan = ~valid
     rot[nan] = np.nan
     range_over_speed[nan] = np.nan
@@ -190,11 +251,17 @@ def tangent_basis(bearings: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
     """
     e = _as_vectors("bearings", bearings)
     # Pick the axis least aligned with e as the helper, so the cross product never vanishes.
-    helper = np.zeros_like(e)
-    helper[np.arange(e.shape[0]), np.argmin(np.abs(e), axis=1)] = 1.0
-    u1 = cross(helper, e)
-    u1 /= np.linalg.norm(u1, axis=1, keepdims=True)
-    u2 = cross(e, u1)
+    least = np.argmin(np.abs(e), axis=1)
+    h0, h1, h2 = ((least == i).astype(np.float64) for i in range(3))
+    e0, e1, e2 = e[:, 0], e[:, 1], e[:, 2]
+    # u1 = helper x e, then normalised; u2 = e x u1 (written out per component: the same
+    # operations as cross() on the same values, without its stacking and the norm's
+    # reduction over the short last axis)
+    a0, a1, a2 = h1 * e2 - h2 * e1, h2 * e0 - h0 * e2, h0 * e1 - h1 * e0
+    norm = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    a0, a1, a2 = a0 / norm, a1 / norm, a2 / norm
+    u1 = np.stack([a0, a1, a2], axis=1)
+    u2 = np.stack([e1 * a2 - e2 * a1, e2 * a0 - e0 * a2, e0 * a1 - e1 * a0], axis=1)
     return u1, u2
 
 
@@ -341,7 +408,7 @@ def _local_fit_result(
     sigma2 = np.maximum(rms, noise) ** 2
     # L and c are observable from the offsets alone (their normal block is sum |d|^2 I).
     valid = good & (used >= min_neighbours) & (normal00 > 0)
-    valid &= np.all(np.isfinite(x), axis=1) & np.isfinite(inv00)
+    valid &= all_finite(x) & np.isfinite(inv00)
     cov00 = np.where(valid, inv00, 1.0) / radius**2
     variance = np.where(valid, sigma2 * cov00, np.inf)
     valid &= np.sqrt(variance) <= max_l_sigma
@@ -480,18 +547,18 @@ def fit_local_looming(
     r2 = radius**2
     ridge = np.maximum(noise**2 / (slant_prior**2 * r2), 1e-14)  # slant prior on g1, g2
     ok = count >= min_neighbours
-    one, zero = np.ones(n), np.zeros(n)
+    identity = np.array([1.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])[:, None]  # lower I
     weights = mask.astype(np.float64)
     fa2, fb2 = fa[:, None], fb[:, None]
     for it in range(iterations + 1):
         lower, rhs = _normal_system(d1, d2, v1, v2, fa, fb, weights)
-        lower = [a / r2 for a in lower]
-        good = ok & np.all(np.isfinite(lower), axis=0)
+        system = np.array(lower) / r2  # (10, N) lower triangles
+        good = ok & np.isfinite(system).all(axis=0)
         # the identity for features without a usable system (their x is discarded)
-        a = [np.where(good, v, one if j in (0, 2, 5, 9) else zero) for j, v in enumerate(lower)]
-        a[2] = np.where(good, lower[2] + ridge, one)
-        a[5] = np.where(good, lower[5] + ridge, one)
-        x, inv00 = _solve_spd4_lower(a, [b / r2 for b in rhs])
+        a = np.where(good, system, identity)
+        a[2] = np.where(good, system[2] + ridge, 1.0)
+        a[5] = np.where(good, system[5] + ridge, 1.0)
+        x, inv00 = _solve_spd4_lower(list(a), list(np.array(rhs) / r2))
         lo, g1, g2, c = (x[:, j : j + 1] for j in range(4))
         slope = g1 * d1 + g2 * d2
         r_1 = v1 - (lo * d1 + fa2 * slope - c * d2)
@@ -501,7 +568,7 @@ def fit_local_looming(
             break
         weights = _cauchy_weights(resid, mask, noise, robust_scale)
     return _local_fit_result(
-        x, inv00, weights, resid, good, lower[0], radius, noise, min_neighbours, max_l_sigma
+        x, inv00, weights, resid, good, system[0], radius, noise, min_neighbours, max_l_sigma
     )
 
 
@@ -610,7 +677,7 @@ def looming_from_heading(
     exh = cross(e, h)
     sin2 = np.einsum("ij,ij->i", exh, exh)
     cos = e @ h
-    valid = (sin2 > min_sin * min_sin) & np.all(np.isfinite(w), axis=1)
+    valid = (sin2 > min_sin * min_sin) & all_finite(w)
     safe2 = np.where(valid, sin2, 1.0)
     speed = np.einsum("ij,ij->i", w, exh) / safe2
     looming = speed * cos

@@ -50,6 +50,7 @@ import numpy.typing as npt
 from owl_core.errors import InvalidInputError
 from owl_core.geometry import so3_exp, so3_log
 from owl_core.gyro import GyroBuffer
+from owl_core.motion import row_norms
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -222,7 +223,11 @@ def fit_timed(
     # the rate belongs to the entries' slope time, the bearing is referred to the frame
     # stamps' (one time for every track over the same frames)
     tau_rate = np.where(line, slope_time, 0.0)
-    ref = _sample_times(m, np.broadcast_to(frame_tau_s, m.shape))[3]
+    frame_tau = np.broadcast_to(frame_tau_s, m.shape)
+    if np.array_equal(tau_s, frame_tau):  # each entry at its frame time: the slope time
+        ref = slope_time
+    else:
+        ref = _sample_times(m, frame_tau)[3]
     out_b[line] = (mean + slope * (ref - centroid)[:, None])[line]
     rate[line] = slope[line]
     tau_ref[line] = ref[line]
@@ -244,7 +249,7 @@ def fit_timed(
             tau_ref[idx] = 0.0
             tau_rate[idx] = 0.0
             gain[idx] = np.sqrt(np.maximum(inv[ok, 1, 1], 0.0))
-    norm = np.linalg.norm(out_b, axis=1, keepdims=True)
+    norm = row_norms(out_b)[:, None]
     out_b = out_b / np.where(norm > 0, norm, 1.0)
     rate = rate - np.einsum("nc,nc->n", rate, out_b)[:, None] * out_b
     return out_b, rate, tau_ref, gain, valid, tau_rate
@@ -271,5 +276,5 @@ def bearings_at_stamp(bearings: FloatArray, rate: FloatArray, tau_s: FloatArray)
     """Bearings (N, 3) seen ``tau_s`` (N,) seconds after the stamp (their row time), moved
     back to the stamp along the derotated rate (N, 3), 1/s: unit (N, 3)."""
     moved = bearings - np.nan_to_num(rate) * tau_s[:, None]
-    out: FloatArray = moved / np.linalg.norm(moved, axis=1, keepdims=True)
+    out: FloatArray = moved / row_norms(moved)[:, None]
     return out

@@ -49,6 +49,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from scipy.spatial import cKDTree
 
 from owl_core.errors import InvalidInputError, TimeError
+from owl_core.motion import all_finite, row_norms
 
 FloatArray = npt.NDArray[np.float64]
 Predictor = Callable[[FloatArray], npt.ArrayLike]
@@ -401,7 +402,7 @@ class FeatureTracker:
                     opts.deformation_radius_px,
                     opts.deformation_robust_px,
                 )
-                use = has & (np.linalg.norm(bias, axis=1) <= opts.deformation_max_px)
+                use = has & (row_norms(bias) <= opts.deformation_max_px)
                 new_pos[alive[use]] -= bias[use]
             timings["lk"] = self.clock() - t0
             if opts.merge_distance_px > 0:
@@ -508,7 +509,7 @@ class FeatureTracker:
                 raise InvalidInputError(
                     f"predict must return shape ({m}, 2) for ({m}, 2) input, got {guess.shape}"
                 )
-            ok = np.all(np.isfinite(guess), axis=1)
+            ok = all_finite(guess)
             init[ok] = guess[ok]
             rot_disp = np.where(ok[:, None], guess - prev, np.nan)
             if opts.lk_predict_velocity and self._history.shape[1] > 2:
@@ -547,7 +548,7 @@ class FeatureTracker:
                 prev_img, cur_img, prev[first], p0[first], p_start[first], opts.lk_predicted_levels
             )
             new_pos[first], reason[first] = pos1, reason1
-            moved = np.linalg.norm(pos1 - p_start[first, 0], axis=1)
+            moved = row_norms(pos1 - p_start[first, 0])
             bad = ((reason1 >= 1) & (reason1 <= 3)) | ~(moved <= opts.lk_predicted_gate_px)
             redo = np.concatenate([np.flatnonzero(~predicted), first[bad]])
         else:
@@ -561,8 +562,7 @@ class FeatureTracker:
             reason[redo] = reason2
         if opts.lk_predict_velocity and predicted.any():
             miss = (reason[predicted] != 0) | ~(
-                np.linalg.norm(new_pos[predicted] - p_start[predicted, 0], axis=1)
-                <= opts.lk_predicted_gate_px
+                row_norms(new_pos[predicted] - p_start[predicted, 0]) <= opts.lk_predicted_gate_px
             )
             self._shallow_next = float(np.mean(miss)) <= opts.lk_shallow_max_miss
         return new_pos, reason
@@ -585,7 +585,7 @@ class FeatureTracker:
         if not (self._stamps[2] >= 0 and dt_last > 0):
             return trans, have
         last = (self._history[:, 1] - self._history[:, 2]) - self._rot_disp
-        have = ok & np.all(np.isfinite(last), axis=1)
+        have = ok & all_finite(last)
         trans[have] = last[have] * (dt_now / dt_last)
         need = np.flatnonzero(ok & ~have)
         donors = np.flatnonzero(have)
@@ -595,11 +595,19 @@ class FeatureTracker:
                 prev[need], k=k, distance_upper_bound=opts.predict_radius_px
             )
             found = np.isfinite(dist)
-            vals = trans[donors[np.where(found, nb, 0)]]  # (n_need, k, 2)
-            vals[~found] = np.nan
-            enough = found.sum(axis=1) >= 3
+            count = found.sum(axis=1)
+            enough = count >= 3
             fill = need[enough]
-            trans[fill] = np.nanmedian(vals[enough], axis=1)
+            # the median over the found neighbours (np.nanmedian's values, without its
+            # masked-array overhead): sorted with the missing ones (NaN) last, the mean of
+            # the two middle entries (one entry twice for an odd count)
+            vals = trans[donors[np.where(found, nb, 0)]][enough]  # (n_fill, k, 2)
+            vals[~found[enough]] = np.nan
+            vals.sort(axis=1)
+            count = count[enough, None, None]
+            low = np.take_along_axis(vals, (count - 1) // 2, axis=1)[:, 0]
+            high = np.take_along_axis(vals, count // 2, axis=1)[:, 0]
+            trans[fill] = (low + high) / 2.0
             have[fill] = True
         return trans, have
 
@@ -656,7 +664,7 @@ class FeatureTracker:
             )
         )
         new_pos = p1.reshape(-1, 2).astype(np.float64)
-        fb = np.linalg.norm(back.reshape(-1, 2).astype(np.float64) - prev, axis=1)
+        fb = row_norms(back.reshape(-1, 2).astype(np.float64) - prev)
         height, width = cur_img.shape
         b = opts.border_px
         inside = (
@@ -665,7 +673,7 @@ class FeatureTracker:
             & (new_pos[:, 1] >= b - 0.5)
             & (new_pos[:, 1] <= height - 0.5 - b)
         )
-        lk_ok = (st1.reshape(-1) == 1) & np.all(np.isfinite(new_pos), axis=1)
+        lk_ok = (st1.reshape(-1) == 1) & all_finite(new_pos)
         reason = np.zeros(m, dtype=np.int8)
         reason[~inside] = 4
         reason[~(err.reshape(-1) <= opts.max_patch_error)] = 3
@@ -756,7 +764,7 @@ class FeatureTracker:
         return result
 
 
-_CHUNK = 128  # windows per step in deformation_bias
+_CHUNK = 64  # windows per step in deformation_bias
 
 
 def deformation_bias(
@@ -808,9 +816,10 @@ def deformation_bias(
     dist, nb = cKDTree(centres).query(centres, k=k, distance_upper_bound=radius_px)
     found = np.isfinite(dist)
     nb = np.where(found, nb, 0)
-    dx = centres[nb] - centres[:, None]  # (N, k, 2)
-    fn = flow[nb]  # (N, k, 2)
-    d, mean_x, mean_f, cov = _affine_gradient(found.astype(np.float64), dx, fn)
+    xf = np.concatenate([centres, flow], axis=1)[nb]  # (N, k, 4): neighbour, its flow
+    xf[..., :2] -= centres[:, None]
+    dx, fn = xf[..., :2], xf[..., 2:]  # (N, k, 2) offsets and flows
+    d, mean_x, mean_f, cov = _affine_gradient(found.astype(np.float64), xf)
     # the neighbours must spread in both directions: the smaller eigenvalue of their
     # offsets' covariance at least (2 px)^2
     cxx, cxy, cyy = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
@@ -820,8 +829,9 @@ def deformation_bias(
         # one reweighting: neighbours off the point's affine flow (another surface across
         # a depth edge, a moving object) count less (Cauchy weights, scale robust_px)
         res = fn - mean_f[:, None, :] - (dx - mean_x[:, None, :]) @ np.transpose(d, (0, 2, 1))
-        cauchy = found / (1.0 + np.sum(res * res, axis=2) / robust_px**2)
-        d = _affine_gradient(cauchy, dx, fn)[0]
+        res_x, res_y = res[..., 0], res[..., 1]
+        cauchy = found / (1.0 + (res_x * res_x + res_y * res_y) / robust_px**2)
+        d = _affine_gradient(cauchy, xf)[0]
     sums = _window_moments(image, centres, window_px)
     g11, g12, g22 = sums[:, 0, 0], sums[:, 1, 0], sums[:, 2, 0]
     # rhs_i = sum_jk D_jk sum g_i g_j d_k
@@ -853,42 +863,52 @@ def _window_moments(
     each gradient image at each point (float32 sums of exact int16 gradients)."""
     n = centres.shape[0]
     w = window_px
+    s = w + 1  # block side
     # exact in int16 (|Scharr| <= 16 * 255) and a tenth of the float32 filter's time
-    blocks = [
-        sliding_window_view(cv2.Scharr(image, cv2.CV_16S, dx, 1 - dx), (w + 1, w + 1))
-        for dx in (1, 0)
-    ]  # d/dx, d/dy: (H - w, W - w, w + 1, w + 1) views
+    grads = np.empty((2, *image.shape), np.int16)  # d/dx, d/dy
+    for c in (0, 1):
+        cv2.Scharr(image, cv2.CV_16S, 1 - c, c, dst=grads[c])
+    blocks = sliding_window_view(grads, (s, s), axis=(1, 2))  # (2, H - w, W - w, s, s)
     half = (w - 1) // 2
     corner = centres - half
     base = np.floor(corner)
     frac = (corner - base).astype(np.float32)
-    iu = np.clip(base[:, 0].astype(np.intp), 0, blocks[0].shape[1] - 1)
-    iv = np.clip(base[:, 1].astype(np.intp), 0, blocks[0].shape[0] - 1)
+    iu = np.clip(base[:, 0].astype(np.intp), 0, blocks.shape[2] - 1)
+    iv = np.clip(base[:, 1].astype(np.intp), 0, blocks.shape[1] - 1)
     off = np.arange(-half, half + 1, dtype=np.float32)
     basis = np.stack([np.ones(w * w, np.float32), np.tile(off, w), np.repeat(off, w)], axis=1)
     # (win^2, 3): 1, x offset (columns), y offset (rows)
     sums = np.empty((n, 3, 3))
     # in chunks of points, into buffers allocated once: the temporaries stay small enough
-    # to reuse (whole-array temporaries of 1000 windows cost more in page faults than in
-    # arithmetic); the bilinear weights are applied along x over all w + 1 rows, then along
-    # y (the same operations on the same values as the 2x2 formula, so the same sums)
+    # to stay in cache (whole-array temporaries of 1000 windows cost more in page faults
+    # than in arithmetic). The bilinear weights are applied along x over all w + 1 rows,
+    # then along y (the same operations on the same values as the 2x2 formula, so the same
+    # sums), each as one operation on the flattened chunk: entry k and entry k + 1 (x) or
+    # k + s (y); the entries that mix a block's last column or row with the next are not
+    # used. (Operations on whole contiguous blocks run several times faster than on the
+    # (w + 1, w) sub-blocks.)
     chunk = min(_CHUNK, n)
-    blk = np.empty((chunk, 2, w + 1, w + 1), np.float32)
-    rows = np.empty((chunk, 2, w + 1, w), np.float32)  # interpolated along x
-    g = np.empty((chunk, 2, w, w), np.float32)  # and along y
+    blk = np.empty((chunk, 2, s, s), np.float32)  # gradient blocks, then weighted
+    tmp = np.empty((chunk, 2, s, s), np.float32)  # the other weighted term
+    g = np.empty((chunk, 2, s, s), np.float32)  # interpolated: [:, :, :w, :w] valid
+    packed = np.empty((chunk, 2, w, w), np.float32)  # that part, contiguous
     prods = np.empty((chunk, 3, w * w), np.float32)
     for lo in range(0, n, chunk):
         m = min(chunk, n - lo)
         sl = slice(lo, lo + m)
-        bk, hr, gg, pr = blk[:m], rows[:m], g[:m], prods[:m]
-        for c in (0, 1):
-            bk[:, c] = blocks[c][iv[sl], iu[sl]]
+        bk, tm, gg, pk, pr = blk[:m], tmp[:m], g[:m], packed[:m], prods[:m]
+        bk_flat, tm_flat, gg_flat = bk.reshape(-1), tm.reshape(-1), gg.reshape(-1)
+        bk.transpose(1, 0, 2, 3)[...] = blocks[:, iv[sl], iu[sl]]
         a, b = frac[sl, 0, None, None, None], frac[sl, 1, None, None, None]
-        np.multiply(bk[..., :-1], 1 - a, out=hr)
-        hr += bk[..., 1:] * a
-        np.multiply(hr[:, :, :-1], 1 - b, out=gg)
-        gg += hr[:, :, 1:] * b
-        gx, gy = gg[:, 0].reshape(m, w * w), gg[:, 1].reshape(m, w * w)
+        np.multiply(bk, a, out=tm)
+        bk *= 1 - a
+        np.add(bk_flat[:-1], tm_flat[1:], out=gg_flat[:-1])  # along x: columns j, j + 1
+        gg_flat[-1] = 0.0  # (not written above; read, unused, by the pass along y)
+        np.multiply(gg, b, out=tm)
+        gg *= 1 - b
+        np.add(gg_flat[:-s], tm_flat[s:], out=gg_flat[:-s])  # along y: rows i, i + 1
+        pk[...] = gg[:, :, :w, :w]
+        gx, gy = pk[:, 0].reshape(m, w * w), pk[:, 1].reshape(m, w * w)
         np.multiply(gx, gx, out=pr[:, 0])
         np.multiply(gx, gy, out=pr[:, 1])
         np.multiply(gy, gy, out=pr[:, 2])
@@ -897,13 +917,14 @@ def _window_moments(
 
 
 def _affine_gradient(
-    w: FloatArray, x: FloatArray, f: FloatArray
+    w: FloatArray, xf: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Weighted least-squares affine fit ``f ~ f0 + D x`` per point, in closed form.
 
     Args:
-        w: (N, k) weights; x: (N, k, 2) offsets, pixels; f: (N, k, 2) values (flows),
-            pixels.
+        w: (N, k) weights; xf: (N, k, 4) offsets ``x`` (``[..., :2]``), pixels, and values
+            ``f`` (``[..., 2:]``, flows), pixels (one array: their means and moments are
+            computed together).
 
     Returns:
         ``D`` (N, 2, 2) with ``D[n, j, k] = d f_j / d x_k`` (zero where the offsets do not
@@ -912,16 +933,15 @@ def _affine_gradient(
         the centred normal equations ``Cxx D^T = Cxf``.
     """
     sw = np.maximum(w.sum(axis=1), 1e-300)
-    mean_x = np.einsum("nk,nka->na", w, x) / sw[:, None]
-    mean_f = np.einsum("nk,nka->na", w, f) / sw[:, None]
-    xc = x - mean_x[:, None, :]
-    wxc_t = np.transpose(xc * w[..., None], (0, 2, 1))  # (N, 2, k)
-    cxx = wxc_t @ xc
-    cxf = wxc_t @ (f - mean_f[:, None, :])  # [a, j]
+    means = np.einsum("nk,nka->na", w, xf) / sw[:, None]  # (N, 4): of x, of f
+    centred = xf - means[:, None, :]
+    wxc_t = np.transpose(centred[..., :2] * w[..., None], (0, 2, 1))  # (N, 2, k)
+    moments = wxc_t @ centred  # (N, 2, 4): Cxx [a, b] and Cxf [a, j]
+    cxx, cxf = moments[..., :2], moments[..., 2:]
     # D^T = Cxx^-1 Cxf, so D = (Cxx^-1 Cxf)^T (zero where Cxx is singular)
     dt_, _ = _solve_sym2(cxx[:, 0, 0], cxx[:, 0, 1], cxx[:, 1, 1], cxf, trace_floor=1e-300)
     d = np.transpose(dt_, (0, 2, 1))
-    return d, mean_x, mean_f, cxx / sw[:, None, None]
+    return d, means[:, :2], means[:, 2:], cxx / sw[:, None, None]
 
 
 def _solve_sym2(

@@ -6,6 +6,8 @@ local rule does not model is second order in the neighbourhood radius (0.01 rad 
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -263,3 +265,24 @@ def test_batched_spd_solve_matches_lapack() -> None:
     indefinite = np.diag([1.0, -1.0, 1.0, 1.0])[None]
     x_bad, inv_bad = motion._solve_spd4(indefinite, np.ones((1, 4)))
     assert np.all(np.isnan(x_bad)) and np.isnan(inv_bad[0])
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 8, 1001])
+def test_the_fast_reductions_equal_numpys_bit_for_bit(n: int) -> None:
+    """row_norms, all_finite and median are the engine's cheaper forms of np.linalg.norm,
+    np.all(np.isfinite(...)) and np.median on short rows and 1-D arrays: the same bits."""
+    from owl_core.motion import all_finite, median, row_norms
+
+    rng = np.random.default_rng(n)
+    for dim in (2, 3):
+        v = rng.normal(size=(n, dim)) * 10.0 ** rng.integers(-8, 8, size=(n, 1))
+        assert np.array_equal(row_norms(v), np.linalg.norm(v, axis=-1))
+        v[rng.random(v.shape) < 0.1] = rng.choice([np.nan, np.inf, -np.inf])
+        assert np.array_equal(all_finite(v), np.all(np.isfinite(v), axis=-1))
+    values = rng.normal(size=n)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # NumPy's for an empty median
+        assert np.array_equal(median(values), np.median(values), equal_nan=True)
+        if n:
+            values[n // 3] = np.nan
+            assert np.isnan(median(values)) and np.isnan(np.median(values))
