@@ -353,7 +353,7 @@ def gyro_two_view(
     Args:
         e0: (N, 3) unit bearings in the older frame.
         e1: (N, 3) unit bearings in the current frame.
-        rotation: (3, 3) R_{1<-0} from the gyro (no bias correction: the baseline has none).
+        rotation: (3, 3) R_{1<-0} from the gyro (less whatever bias its provider removes).
         interval_s: time between the frames, seconds (> 0).
         focal_px: focal length, pixels.
         options: settings (``method`` is ignored).
