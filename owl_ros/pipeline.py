@@ -259,6 +259,7 @@ class Pipeline:
 
     def _rebuild_engine(self) -> None:
         self._jumps.forget_image()
+        self._engine_faults = 0  # a new engine: earlier faults say nothing of it
         if self._camera is None:
             self._engine = None
             return
