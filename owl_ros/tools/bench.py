@@ -104,12 +104,19 @@ BASELINES = ("cv-5pt", "cv-gyro")
 #: the grid spans what suits a 10 Hz car (0.05) to a 30 Hz walk (0.5), and each case is
 #: judged against the best of them, as it is against the best gap.
 FILTER_SIGMAS_DEG = (0.05, 0.2, 0.5)
-#: The two-view methods, unfiltered ("cv-5pt@1", ...).
-TWO_VIEW = tuple(f"{b}@{g}" for b in BASELINES for g in GAPS)
-#: The filtered methods: (name, two-view method it filters, sigma in deg).
-FILTERED = tuple((f"{m}+kf{s:g}", m, s) for m in TWO_VIEW for s in FILTER_SIGMAS_DEG)
-#: Every scored method: OWL, each baseline at each gap, and each of those filtered.
-METHODS = ("owl", *TWO_VIEW, *(f[0] for f in FILTERED))
+
+
+def _methods(gaps: Sequence[int]) -> tuple[tuple[str, ...], tuple[tuple[str, str, float], ...]]:
+    """Every scored method at ``gaps`` (OWL, each baseline at each gap "cv-5pt@1", ..., and
+    each of those filtered "cv-5pt@1+kf0.2", ...) and the filtered settings (name, the
+    two-view method it filters, sigma in deg)."""
+    two_view = tuple(f"{b}@{g}" for b in BASELINES for g in gaps)
+    filtered = tuple((f"{m}+kf{s:g}", m, s) for m in two_view for s in FILTER_SIGMAS_DEG)
+    return ("owl", *two_view, *(f[0] for f in filtered)), filtered
+
+
+#: Every scored method of a camera at :data:`GAPS_RATE_HZ` or slower (:func:`_methods`).
+METHODS = _methods(GAPS)[0]
 #: Bias magnitude of the biased rows, rad/s, along (1, 1, 1)/sqrt(3) in the IMU frame.
 BIAS = 0.01
 #: Scenarios without independently moving objects and with translation (pooled accuracy).
@@ -562,13 +569,6 @@ def case_gaps(rate_hz: float, history: int) -> tuple[int, ...]:
     return tuple(sorted({*GAPS, longest})) if rate_hz > GAPS_RATE_HZ else GAPS
 
 
-def _methods(gaps: Sequence[int]) -> tuple[tuple[str, ...], tuple[tuple[str, str, float], ...]]:
-    """Method names (OWL first) and the filtered settings (name, raw, sigma) for ``gaps``."""
-    two_view = tuple(f"{b}@{g}" for b in BASELINES for g in gaps)
-    filtered = tuple((f"{m}+kf{s:g}", m, s) for m in two_view for s in FILTER_SIGMAS_DEG)
-    return ("owl", *two_view, *(f[0] for f in filtered)), filtered
-
-
 def run_case(
     case: Case,
     profile: Profile,
@@ -611,6 +611,9 @@ def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = F
 
     known_bias = src.truth_bias
 
+    def bias() -> npt.NDArray[np.float64]:
+        return known_bias if known_bias is not None else engine.gyro_bias
+
     def rotation(t0: int, t1: int) -> npt.NDArray[np.float64] | None:
         # The gyro-aided baselines derotate, and every filtered one predicts, with the
         # true bias where the case knows it (a gyro calibrated exactly: the strongest
@@ -618,8 +621,7 @@ def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = F
         # constant rotation error into lag), else with the bias OWL has estimated by then.
         if not gyro.covers(t0, t1):
             return None
-        bias = known_bias if known_bias is not None else engine.gyro_bias
-        return gyro.relative_rotation(t0, t1, bias)
+        return gyro.relative_rotation(t0, t1, bias())
 
     readout_ns = round(src.readout_s * 1e9)
 
@@ -628,8 +630,7 @@ def run_source(case: Case, profile: Profile, src: Source, keep_results: bool = F
         # row's time, as OWL does (a rotation per frame left them degrees off on brisk+rs30).
         if not gyro.covers(int(frames.min()), max(int(frames.max()), stamp) + readout_ns):
             return None
-        bias = known_bias if known_bias is not None else engine.gyro_bias
-        return readout_rotations(gyro, frames, stamp, readout_ns, bias)
+        return readout_rotations(gyro, frames, stamp, readout_ns, bias())
 
     history = max(engine.options.tracker.history_len, engine.options.fit_frames)  # as OWL's
     gaps = case_gaps(case.rate_hz or profile.rate_hz, history)
@@ -772,14 +773,21 @@ def _paired_row(run: CaseRun, method: str) -> dict[str, Any] | None:
         return None
     mine = np.concatenate(run.paired[method][0]) if run.paired[method][0] else np.zeros(0)
     theirs = np.concatenate(run.paired[method][1]) if run.paired[method][1] else np.zeros(0)
-    if mine.size == 0:
+    return _paired_stats("points", mine, theirs)
+
+
+def _paired_stats(count: str, mine: npt.ArrayLike, theirs: npt.ArrayLike) -> dict[str, Any] | None:
+    """Median and p90 of OWL's and a baseline's paired errors, with their number under
+    ``count``; None when there are none."""
+    a, b = np.asarray(mine, dtype=np.float64), np.asarray(theirs, dtype=np.float64)
+    if a.size == 0:
         return None
     return {
-        "points": int(mine.size),
-        "owl_median": float(np.median(mine)),
-        "owl_p90": float(np.percentile(mine, 90)),
-        "median": float(np.median(theirs)),
-        "p90": float(np.percentile(theirs, 90)),
+        count: int(a.size),
+        "owl_median": float(np.median(a)),
+        "owl_p90": float(np.percentile(a, 90)),
+        "median": float(np.median(b)),
+        "p90": float(np.percentile(b, 90)),
     }
 
 
@@ -787,15 +795,7 @@ def _heading_paired_row(run: CaseRun, method: str) -> dict[str, Any] | None:
     """Heading errors of OWL and of baseline ``method`` on the frames both gave a heading
     for: {"frames", "owl_median", "owl_p90", "median", "p90"} (deg), or None."""
     mine, theirs = run.heading_pairs.get(method, ([], []))
-    if not mine:
-        return None
-    return {
-        "frames": len(mine),
-        "owl_median": float(np.median(mine)),
-        "owl_p90": float(np.percentile(mine, 90)),
-        "median": float(np.median(theirs)),
-        "p90": float(np.percentile(theirs, 90)),
-    }
+    return _paired_stats("frames", mine, theirs)
 
 
 def _method_row(run: CaseRun, method: str) -> dict[str, Any]:
