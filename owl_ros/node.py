@@ -73,6 +73,7 @@ from owl_ros.params import (
 )
 from owl_ros.pipeline import Output, Pipeline
 from owl_ros.roles import Role
+from owl_ros.threads import one_blas_thread
 from owl_ros.topics import GYRO_BIAS, RESULT_TOPICS
 
 PROG = "owl_node"
@@ -717,6 +718,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             pass
         return 0
     heap_line = keep_freed_memory()
+    blas_line = one_blas_thread()
     stop = threading.Event()
     bad_file = node_report.check_params_file_args(args)
     if bad_file is not None:
@@ -737,6 +739,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         rclpy.try_shutdown()
         return 2
     node.get_logger().debug(heap_line)
+    node.get_logger().debug(blas_line)
     executor = _executor()
     executor.add_node(node)
     try:

@@ -63,6 +63,7 @@ from owl_ros.params import (
 )
 from owl_ros.pipeline import Output, Pipeline
 from owl_ros.roles import Role
+from owl_ros.threads import one_blas_thread
 from owl_ros.topics import (
     DIAGNOSTICS,
     GYRO_BIAS,
@@ -710,6 +711,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``owl_process``; returns the exit status."""
     args = build_parser().parse_args(argv)
     keep_freed_memory()
+    one_blas_thread()
     try:
         opts = options_from_args(args)
     except ParameterError as err:

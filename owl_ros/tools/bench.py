@@ -77,6 +77,7 @@ from owl_core.rolling_shutter import ReadoutRotations, readout_rotations
 from owl_core.types import FrameResult, GyroSamples, ImageFrame
 from owl_ros import params
 from owl_ros.heap import keep_freed_memory
+from owl_ros.threads import one_thread
 from owl_ros.tools.errors import BenchError, EvalError, ToolError
 from owl_ros.tools.evaluate import (
     Estimate,
@@ -86,7 +87,6 @@ from owl_ros.tools.evaluate import (
     score_frame,
     summarize,
 )
-from owl_ros.tools.threads import one_thread
 
 PROG = "owl_bench"
 #: Frame gaps at which both baselines run (the current frame paired with the one this many
@@ -1417,7 +1417,7 @@ def _parse_cases(text: str) -> tuple[Case, ...]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``owl_bench``; returns the exit status.
 
-    Pins OpenCV and the loaded BLAS libraries to one thread (``tools.threads``): the
+    Pins OpenCV and the loaded BLAS libraries to one thread (``owl_ros.threads``): the
     timings are per-thread figures. Importing this module changes nothing.
     """
     one_thread()

@@ -27,8 +27,8 @@ import numpy as np
 
 from owl_core.types import ImageFrame
 from owl_ros.heap import keep_freed_memory
+from owl_ros.threads import one_thread
 from owl_ros.tools import bench
-from owl_ros.tools.threads import one_thread
 
 PROG = "python -m owl_ros.tools.cost"
 STAGES = ("track", "lk", "detect", "integrate", "heading", "looming", "total")

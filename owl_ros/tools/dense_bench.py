@@ -43,8 +43,8 @@ from owl_core.engine import EngineOptions, OwlEngine
 from owl_core.geometry import matrix_to_quat_xyzw
 from owl_core.types import GyroSamples, ImageFrame
 from owl_ros.heap import keep_freed_memory
+from owl_ros.threads import one_thread
 from owl_ros.tools.bench import load_frames, sim_engine
-from owl_ros.tools.threads import one_thread
 
 STATIC = ("cube", "scaled", "accel", "turn", "street", "receding")
 WARMUP = 8
