@@ -705,6 +705,7 @@ class Pipeline:
             imu_time_offset_sigma_s=(
                 engine.imu_time_offset_sigma_s if engine is not None else math.nan
             ),
+            dense_max_rate_hz=self.options.dense_max_rate_hz if self.options.dense else None,
         )
         records = build_status(snapshot)
         if reset_window:

@@ -63,6 +63,8 @@ class StatusInputs:
         imu_time_offset_s: the IMU time offset the engine uses, s (NaN without an engine).
         imu_time_offset_sigma_s: 1-sigma of its online estimate, s (NaN when not
             estimated: ``estimate_imu_time_offset`` off).
+        dense_max_rate_hz: the dense stage's rate cap, Hz (0: every frame it can), or None
+            when the dense stage is off.
     """
 
     span_s: float
@@ -91,6 +93,7 @@ class StatusInputs:
     calibration: MonitorVerdict | None = None
     imu_time_offset_s: float = math.nan
     imu_time_offset_sigma_s: float = math.nan
+    dense_max_rate_hz: float | None = None
 
     def rate(self, count: int) -> float:
         """A window count per second (NaN for an empty window)."""
@@ -216,9 +219,13 @@ def _processing_message(s: StatusInputs) -> tuple[Level, str]:
         engine_s = _mean(s.process_s)
         interval_s = 1.0 / s.rate(c.images) if c.images else math.nan
         if engine_s > 0.9 * interval_s:  # not a burst: the engine is slower than the camera
+            helps = "fewer max_features keep up"
+            if s.dense_max_rate_hz is not None:  # the dense thread shares the two cores
+                cap = f"{s.dense_max_rate_hz:g} Hz" if s.dense_max_rate_hz > 0 else "none"
+                helps = f"fewer max_features or a lower dense_max_rate_hz (now {cap}) keep up"
             message += (
                 f": the engine takes {1e3 * engine_s:.0f} ms a frame, images arrive every "
-                f"{1e3 * interval_s:.0f} ms (fewer max_features keep up; the README's "
+                f"{1e3 * interval_s:.0f} ms ({helps}; the README's "
                 "'Cost per frame' says what each setting costs)"
             )
     if c.time_jumps:

@@ -53,6 +53,11 @@ def test_an_engine_slower_than_the_camera_is_named_with_what_helps() -> None:
         "arrive every 33 ms (fewer max_features keep up; the README's 'Cost per frame' says "
         "what each setting costs)"
     )
+    # with the dense stage on, its rate cap is the other lever
+    dense = build_status(replace(slow, dense_max_rate_hz=0.0))[1].message
+    assert "(fewer max_features or a lower dense_max_rate_hz (now none) keep up;" in dense
+    capped = build_status(replace(slow, dense_max_rate_hz=10.0))[1].message
+    assert "dense_max_rate_hz (now 10 Hz) keep up;" in capped
     # a burst: the same drops with an engine well inside the interval say only the drops
     burst = _inputs(counts=replace(counts, dropped_queue_full=20), process_s=[0.01, 0.012])
     assert build_status(burst)[1].message.endswith("20 frames dropped (queue full, newest wins)")
