@@ -55,6 +55,13 @@ Everything is vectorised over pixels (numpy and OpenCV filters) and works in flo
 per-component planes (``(3, h, w)`` arrays: contiguous, so numpy's SIMD loops run on
 them). Units: seconds, radians, pixels; the output images are ``(h, w)`` float32 with NaN
 where invalid.
+
+Threads: the global affine fit takes float64 dot products over the working plane, large
+enough for OpenBLAS to run them on its thread pool, whose idle threads then busy-wait for
+the next call (about 70 % of a core in the node, docs/performance.md). The product's
+entry points run BLAS on one thread; a process of your own that runs this stage every
+frame should too (``OPENBLAS_NUM_THREADS=1``, or threadpoolctl's ``threadpool_limits(1,
+"blas")``).
 """
 
 from __future__ import annotations
