@@ -137,3 +137,14 @@ def test_node_counts_cover_the_span_of_the_nodes_own_diagnostics() -> None:
         "node_engine_ms": 43.0,  # median of 42 and 44 (the first in-window one opens it)
     }
     assert latency._node_counts(snapshots[:2], round(1.5e9), published) == {}
+
+
+def test_the_clip_covers_the_window_unless_asked_to_loop() -> None:
+    # a looped clip jumps back to its first image inside the window: a scene cut a camera
+    # never makes, so by default the clip lasts the warm-up and the window at the top speed
+    parse = latency.build_parser().parse_args
+    assert latency.clip_seconds(parse([])) == latency.WARMUP_S + 10.0 + 0.5
+    assert latency.clip_seconds(parse(["--seconds", "4", "--speed", "1", "2"])) == 2 * (
+        latency.WARMUP_S + 4.5
+    )
+    assert latency.clip_seconds(parse(["--clip-seconds", "2"])) == 2.0
