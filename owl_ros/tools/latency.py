@@ -1,7 +1,8 @@
 """owl_latency: image-in to cloud-out latency, throughput, CPU and RSS of a live ``owl_node``.
 
-Renders a scenario once (in memory), starts ``owl_node`` in its own process on a private
-ROS domain, and publishes the clip in a loop over real DDS at wall-clock pace with header
+Renders a scenario once (in memory; by default as long as the run, see
+:func:`clip_seconds`), starts ``owl_node`` in its own process on a private ROS domain, and
+publishes the clip (looped when shorter than the run) over real DDS at wall-clock pace with header
 stamps = the wall-clock publication time (camera_info and IMU alongside, IMU at its own
 rate, stamps shifted each loop so time only moves forward). A subscriber in this process
 takes the arrival time of each ``owl/points`` cloud minus its header stamp: the latency
