@@ -419,20 +419,22 @@ def median_measurement(runs: Sequence[Measurement]) -> dict[str, float]:
     return out
 
 
-def clip_seconds(args: argparse.Namespace) -> float:
+def clip_seconds(args: argparse.Namespace, speed: float | None = None) -> float:
     """The clip to render, s: ``--clip-seconds``, else long enough that the publisher does
-    not loop before the window ends (warm-up, window and half a second, at the highest
-    ``--speed``). A looped clip jumps back to its first image, which a camera never does:
-    the engine loses every track there and pays about 100 to 180 CPU ms a loop re-tracking
-    (street, 640x480, 1000 features), so a 2 s loop cost the node several frames of 60."""
+    not loop before the window ends (warm-up, window and half a second, played at ``speed``,
+    by default the highest ``--speed``). A looped clip jumps back to its first image, which
+    a camera never does: the engine loses every track there and pays about 100 to 180 CPU ms
+    a loop re-tracking (street, 640x480, 1000 features), so a 2 s loop cost the node several
+    frames of 60."""
     if args.clip_seconds is not None:
         return float(args.clip_seconds)
-    return (WARMUP_S + args.seconds + 0.5) * max(args.speed)
+    return (WARMUP_S + args.seconds + 0.5) * (max(args.speed) if speed is None else speed)
 
 
 def _run_case(name: str, args: argparse.Namespace, node_args: list[str]) -> None:
     case = CASES[name]
-    clip = render_clip(args.scenario, clip_seconds(args), case.width, case.height, case.rate_hz)
+    seconds = clip_seconds(args, 1.0)  # a case plays at its own rate
+    clip = render_clip(args.scenario, seconds, case.width, case.height, case.rate_hz)
     runs = []
     for i in range(args.runs):
         m = measure(

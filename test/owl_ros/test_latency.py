@@ -147,4 +147,5 @@ def test_the_clip_covers_the_window_unless_asked_to_loop() -> None:
     assert latency.clip_seconds(parse(["--seconds", "4", "--speed", "1", "2"])) == 2 * (
         latency.WARMUP_S + 4.5
     )
+    assert latency.clip_seconds(parse(["--speed", "3"]), 1.0) == latency.WARMUP_S + 10.5
     assert latency.clip_seconds(parse(["--clip-seconds", "2"])) == 2.0
