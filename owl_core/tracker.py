@@ -50,6 +50,7 @@ from scipy.spatial import cKDTree
 
 from owl_core.errors import InvalidInputError, TimeError
 from owl_core.motion import all_finite, row_norms
+from owl_core.os_thread import name_os_thread
 
 FloatArray = npt.NDArray[np.float64]
 Predictor = Callable[[FloatArray], npt.ArrayLike]
@@ -434,7 +435,9 @@ class FeatureTracker:
             existing = self._history[:, 0].copy()
             if opts.background_detection:
                 if self._executor is None:
-                    self._executor = ThreadPoolExecutor(1, thread_name_prefix="owl-detect")
+                    self._executor = ThreadPoolExecutor(
+                        1, thread_name_prefix="owl-detect", initializer=name_os_thread
+                    )
                 self._pending = self._executor.submit(self._timed_detect, img, existing)
             else:
                 corners, timings["detect"] = self._timed_detect(img, existing)

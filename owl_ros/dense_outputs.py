@@ -44,6 +44,7 @@ from owl_core.camera import CameraModel
 from owl_core.dense import DenseOptions, DenseOwl, DenseResult, ImagePair, Readout
 from owl_core.engine import OwlEngine
 from owl_core.errors import OwlError
+from owl_core.os_thread import name_os_thread
 from owl_core.rolling_shutter import readout_rotations
 from owl_ros.params import NodeOptions
 
@@ -460,6 +461,7 @@ class DensePublishers:
             self._cond.notify_all()
 
     def _loop(self) -> None:
+        name_os_thread()  # "owl-dense" in top -H
         while True:
             with self._cond:
                 while self._pending is None and not self._closing:

@@ -59,6 +59,7 @@ from msg_adapters.debug_image import draw_debug
 from msg_adapters.diagnostics import records_to_msg
 from msg_adapters.image import array_to_image
 from msg_adapters.stamps import header_to_ns
+from owl_core.os_thread import name_os_thread
 from owl_ros import node_report
 from owl_ros.dense_outputs import DensePublishers
 from owl_ros.extrinsic_tf import TfExtrinsic, tf_available
@@ -539,6 +540,7 @@ class OwlNode(Node):
     # ------------------------------------------------------------------ worker
 
     def _run(self) -> None:
+        name_os_thread()  # "owl-worker" in top -H
         diag_period_ns = round(self.options.diagnostics_period_s * 1e9)
         next_diag = time.monotonic_ns() + diag_period_ns
         self._pipeline.start_window()
