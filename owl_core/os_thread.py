@@ -12,7 +12,7 @@ import ctypes
 import sys
 import threading
 
-__all__ = ["name_os_thread"]
+__all__ = ["NAME_BYTES", "name_os_thread"]
 
 _PR_SET_NAME = 15  # linux/prctl.h
 #: The kernel's limit for a thread name, bytes (16 with the terminating NUL).
@@ -27,7 +27,7 @@ def name_os_thread(name: str | None = None) -> bool:
     text = threading.current_thread().name if name is None else name
     raw = text.encode("utf-8", "replace")[:NAME_BYTES]
     try:
-        libc = ctypes.CDLL(None, use_errno=True)
+        libc = ctypes.CDLL(None)  # the C library this process already runs on
         return int(libc.prctl(_PR_SET_NAME, ctypes.c_char_p(raw), 0, 0, 0)) == 0
     except (OSError, AttributeError):  # no prctl in this C library
         return False

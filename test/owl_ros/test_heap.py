@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
-import json
 import os
-import subprocess
 import sys
 import textwrap
+from typing import TYPE_CHECKING
 
 import pytest
 
 from owl_ros import heap
+
+if TYPE_CHECKING:
+    from conftest import SnippetRunner
 
 # A frame's pattern: several image-sized blocks allocated, written, then freed together
 # (more free heap at once than glibc's dynamic trim threshold), forty times. Prints the
@@ -35,14 +37,6 @@ _FRAMES = textwrap.dedent(
 )
 
 
-def _run(mode: str, env: dict[str, str]) -> dict[str, object]:
-    out = subprocess.run(
-        [sys.executable, "-c", _FRAMES, mode], env=env, capture_output=True, text=True, check=True
-    )
-    result: dict[str, object] = json.loads(out.stdout)
-    return result
-
-
 def _clean_env() -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
     env.pop("GLIBC_TUNABLES", None)
@@ -50,20 +44,20 @@ def _clean_env() -> dict[str, str]:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc heap")
-def test_frames_stop_faulting_their_blocks_in_again() -> None:
+def test_frames_stop_faulting_their_blocks_in_again(run_snippet: SnippetRunner) -> None:
     # 6 blocks x 1.2 MB = 1760 pages a frame: glibc's own rule gives most of them back to
     # the kernel after every frame; with the thresholds fixed they stay in the heap.
     env = _clean_env()
-    plain = _run("plain", env)
-    kept = _run("keep", env)
+    plain = run_snippet(_FRAMES, "plain", env)
+    kept = run_snippet(_FRAMES, "keep", env)
     assert float(plain["faults_per_frame"]) > 1000.0, plain  # the problem is there
     assert float(kept["faults_per_frame"]) < 20.0, kept
     assert "32 MiB" in str(kept["line"]) and "64 MiB" in str(kept["line"])
 
 
-def test_the_environment_s_own_settings_win() -> None:
+def test_the_environment_s_own_settings_win(run_snippet: SnippetRunner) -> None:
     env = _clean_env() | {"MALLOC_TRIM_THRESHOLD_": "131072"}
-    kept = _run("keep", env)
+    kept = run_snippet(_FRAMES, "keep", env)
     assert "MALLOC_TRIM_THRESHOLD_" in str(kept["line"])
     assert float(kept["faults_per_frame"]) > 1000.0, kept  # glibc's behaviour, untouched
     line = heap.keep_freed_memory({"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=131072"})

@@ -3,14 +3,14 @@ BLAS thread busy-waits beside the engine."""
 
 from __future__ import annotations
 
-import json
 import os
-import subprocess
-import sys
 import textwrap
-from typing import Any
+from typing import TYPE_CHECKING
 
 from owl_ros import threads
+
+if TYPE_CHECKING:
+    from conftest import SnippetRunner
 
 # The dense stage's pattern: a float64 dot over a 320x240 plane, then 33 ms of other work
 # (here a sleep), thirty times. Prints the BLAS thread counts threadpoolctl sees, the
@@ -34,20 +34,12 @@ _FRAMES = textwrap.dedent(
 )
 
 
-def _run(mode: str, env: dict[str, str]) -> dict[str, Any]:
-    out = subprocess.run(
-        [sys.executable, "-c", _FRAMES, mode], env=env, capture_output=True, text=True, check=True
-    )
-    result: dict[str, Any] = json.loads(out.stdout)
-    return result
-
-
 def _clean_env() -> dict[str, str]:
     return {k: v for k, v in os.environ.items() if k not in threads.BLAS_ENV}
 
 
-def test_blas_runs_on_one_thread_and_does_not_spin() -> None:
-    one = _run("one", _clean_env())
+def test_blas_runs_on_one_thread_and_does_not_spin(run_snippet: SnippetRunner) -> None:
+    one = run_snippet(_FRAMES, "one", _clean_env())
     assert one["blas_threads"] and set(one["blas_threads"]) == {1}, one
     assert "one thread" in str(one["line"])
     # 30 dots of 0.1 ms and 1 s of sleeping: a spinning BLAS thread would add up to a
@@ -55,8 +47,8 @@ def test_blas_runs_on_one_thread_and_does_not_spin() -> None:
     assert one["cpu_s"] < 0.3, one
 
 
-def test_the_environment_s_own_thread_count_wins() -> None:
-    kept = _run("one", _clean_env() | {"OPENBLAS_NUM_THREADS": "2"})
+def test_the_environment_s_own_thread_count_wins(run_snippet: SnippetRunner) -> None:
+    kept = run_snippet(_FRAMES, "one", _clean_env() | {"OPENBLAS_NUM_THREADS": "2"})
     assert "OPENBLAS_NUM_THREADS" in str(kept["line"])
     assert kept["blas_threads"] and set(kept["blas_threads"]) == {2}, kept
     line = threads.one_blas_thread({"OMP_NUM_THREADS": "4"})
