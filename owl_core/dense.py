@@ -1253,7 +1253,7 @@ class DenseOwl:
         t_start = time.perf_counter()
         rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
         if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):
-            raise InvalidInputError(f"rotation must be a finite (3, 3) matrix, got {rot!r}")
+            raise InvalidInputError(f"rotation must be a finite (3, 3) matrix, got {rot.tolist()}")
         hv: F64 | None = None
         if heading is not None:
             hv = np.asarray(heading, dtype=np.float64)

@@ -46,6 +46,14 @@ from owl_core.engine import OwlEngine
 from owl_core.errors import OwlError
 from owl_core.os_thread import name_os_thread
 from owl_core.rolling_shutter import readout_rotations
+from owl_ros.dense_worker import (
+    DenseProcess,
+    DenseProcessError,
+    DenseRequest,
+    DenseSummary,
+    message_arrays,
+    summarize,
+)
 from owl_ros.params import NodeOptions
 
 __all__ = [
@@ -68,19 +76,6 @@ TOPICS: dict[str, str] = {
     "owl/dense_points": "sensor_msgs/msg/PointCloud2",
     "owl/time_to_contact": "geometry_msgs/msg/PointStamped",
 }
-
-_CLOUD_DTYPE = np.dtype(
-    [
-        ("x", np.float32),
-        ("y", np.float32),
-        ("z", np.float32),
-        ("u", np.float32),
-        ("v", np.float32),
-        ("L", np.float32),
-        ("range_over_speed", np.float32),
-        ("confidence", np.float32),
-    ]
-)
 
 
 def dense_options(options: NodeOptions) -> DenseOptions:
@@ -109,7 +104,7 @@ def working_camera(camera: CameraModel, width: int, height: int) -> CameraModel:
 
 @dataclass
 class _Last:
-    result: DenseResult | None = None
+    result: DenseSummary | None = None
     error: str = ""  # why the newest frame gave no result ("" once one did)
     errors: int = 0
     frames: int = 0
@@ -165,8 +160,8 @@ class DenseStage:
         self._next_due_ns: int | None = None
 
     @property
-    def last(self) -> DenseResult | None:
-        """The latest dense result (None before the second frame)."""
+    def last(self) -> DenseSummary | None:
+        """What ``owl: dense`` reports of the latest dense result (None before one)."""
         return self._last.result
 
     @property
@@ -268,8 +263,8 @@ class DenseStage:
         )
 
     def finish(self, job: DenseJob) -> DenseResult | None:
-        """Measure a job and keep its result for ``owl: dense``; None after bad input
-        (said in the status)."""
+        """Measure a job in this thread and keep its summary for ``owl: dense``; None after
+        bad input (said in the status)."""
         try:
             out = job.dense.measure(
                 job.pair,
@@ -280,21 +275,40 @@ class DenseStage:
                 job.readout,
             )
         except OwlError as err:
-            with self._lock:
-                self._fail(f"dense: {err}")
+            self.record_error(f"dense: {err}")
             return None
+        self.record(summarize(out))
+        return out
+
+    def request(self, job: DenseJob, speed: float | None, topics: frozenset[str]) -> DenseRequest:
+        """The job as it crosses to the dense process, with what its messages need."""
+        return DenseRequest(
+            camera=job.dense.camera,
+            options=job.dense.options,
+            pair=job.pair,
+            rotation=job.rotation,
+            heading=job.heading,
+            heading_sigma_rad=job.heading_sigma_rad,
+            speed_rate=job.speed_rate,
+            readout=job.readout,
+            speed=speed,
+            stride=self.options.dense_cloud_stride,
+            topics=topics,
+        )
+
+    def record(self, summary: DenseSummary) -> None:
+        """Keep one frame's dense result for ``owl: dense`` (any thread)."""
         with self._lock:
             self._last.frames += 1
-            self._last.result = out
+            self._last.result = summary
             self._last.error = ""
-            ttc = out.ttc
-            if ttc is not None and math.isfinite(ttc.seconds):
+            seconds = summary.ttc_s
+            if math.isfinite(seconds):
                 best = self._last.window_min
-                if best is None or ttc.seconds < best[0]:
-                    self._last.window_min = (ttc.seconds, ttc.pixel)
-                if self._warning(ttc.seconds, ttc.pixel) is not None:
+                if best is None or seconds < best[0]:
+                    self._last.window_min = (seconds, summary.ttc_pixel)
+                if self._warning(seconds, summary.ttc_pixel) is not None:
                     self._last.warned += 1
-        return out
 
     def _warning(self, seconds: float, pixel: Any) -> str | None:
         """The WARN line when a time to contact is below ``ttc_warn_s``."""
@@ -325,15 +339,14 @@ class DenseStage:
         if res is None:
             msg = "no dense result yet (needs two frames while subscribed)"
             return StatusRecord.build("owl: dense", Level.OK, msg, values)
-        ttc = res.ttc
         shortest = window_min[0] if window_min is not None else math.nan
         values.update(
             {
                 "confident_fraction": res.confident_fraction,
-                "dense_ms": 1e3 * res.timings.get("total", math.nan),
-                "ttc_s": ttc.seconds if ttc is not None else math.nan,
+                "dense_ms": 1e3 * res.total_s,
+                "ttc_s": res.ttc_s,
                 "ttc_min_period_s": shortest,
-                "ttc_cone_pixels": ttc.pixels_in_cone if ttc is not None else 0,
+                "ttc_cone_pixels": res.ttc_cone_pixels,
             }
         )
         if window_min is not None:
@@ -348,8 +361,27 @@ class DenseStage:
         return StatusRecord.build("owl: dense", Level.OK, text, values)
 
 
-def _image(array: Any, header: Any) -> Any:
-    return array_to_image(np.ascontiguousarray(array, dtype=np.float32), "32FC1", header=header)
+def arrays_to_messages(
+    arrays: dict[str, Any], work_camera: CameraModel, header: Any, wanted: Callable[[str], bool]
+) -> dict[str, Any]:
+    """Messages of :func:`~owl_ros.dense_worker.message_arrays`' arrays (and
+    ``owl/depth/camera_info`` where wanted), with ``header``."""
+    from geometry_msgs.msg import PointStamped
+
+    out: dict[str, Any] = {}
+    for topic in ("owl/looming", "owl/range_over_speed", "owl/depth/image"):
+        if topic in arrays:
+            out[topic] = array_to_image(arrays[topic], "32FC1", header=header)
+    if wanted("owl/depth/camera_info"):
+        out["owl/depth/camera_info"] = camera_model_to_info(work_camera, header)
+    if "owl/dense_points" in arrays:
+        out["owl/dense_points"] = array_to_cloud(arrays["owl/dense_points"], header)
+    if "owl/time_to_contact" in arrays:
+        msg = PointStamped(header=header)
+        p = arrays["owl/time_to_contact"]
+        msg.point.x, msg.point.y, msg.point.z = float(p[0]), float(p[1]), float(p[2])
+        out["owl/time_to_contact"] = msg
+    return {t: out[t] for t in TOPICS if t in out}  # publication order
 
 
 def build_messages(
@@ -364,45 +396,8 @@ def build_messages(
 
     ``speed`` (m/s) makes the depth image and the cloud metric; None keeps seconds.
     """
-    from geometry_msgs.msg import PointStamped
-
-    out: dict[str, Any] = {}
-    conf = result.confident
-    nan = np.float32(np.nan)
-    scale = np.float32(speed) if speed is not None else np.float32(1.0)
-    if wanted("owl/looming"):
-        out["owl/looming"] = _image(np.where(conf, result.looming, nan), header)
-    if wanted("owl/range_over_speed"):
-        out["owl/range_over_speed"] = _image(np.where(conf, result.range_over_speed, nan), header)
-    if wanted("owl/depth/image"):
-        out["owl/depth/image"] = _image(
-            np.where(conf, result.depth_over_speed * scale, nan), header
-        )
-    if wanted("owl/depth/camera_info"):
-        out["owl/depth/camera_info"] = camera_model_to_info(work_camera, header)
-    if wanted("owl/dense_points"):
-        sub = (slice(None, None, stride), slice(None, None, stride))
-        keep = conf[sub]
-        pts = result.points[sub][keep] * scale
-        v, u = np.nonzero(keep)
-        cloud = np.zeros(pts.shape[0], dtype=_CLOUD_DTYPE)
-        cloud["x"], cloud["y"], cloud["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
-        cloud["u"] = (u * stride).astype(np.float32)
-        cloud["v"] = (v * stride).astype(np.float32)
-        cloud["L"] = result.looming[sub][keep]
-        cloud["range_over_speed"] = result.range_over_speed[sub][keep]
-        cloud["confidence"] = result.confidence[sub][keep]
-        out["owl/dense_points"] = array_to_cloud(cloud, header)
-    if wanted("owl/time_to_contact"):
-        msg = PointStamped(header=header)
-        ttc = result.ttc
-        if ttc is not None and ttc.bearing is not None and math.isfinite(ttc.seconds):
-            p = ttc.bearing * ttc.seconds
-            msg.point.x, msg.point.y, msg.point.z = float(p[0]), float(p[1]), float(p[2])
-        else:
-            msg.point.x = msg.point.y = msg.point.z = math.nan
-        out["owl/time_to_contact"] = msg
-    return out
+    arrays = message_arrays(result, speed, stride, wanted)
+    return arrays_to_messages(arrays, work_camera, header, wanted)
 
 
 class DensePublishers:
@@ -437,8 +432,14 @@ class DensePublishers:
         self._pending: tuple[Any, ...] | None = None
         self._busy = False
         self._closing = False
+        self._process = DenseProcess() if options.dense_process else None
         self._thread = threading.Thread(target=self._loop, name="owl-dense", daemon=True)
         self._thread.start()
+
+    @property
+    def process(self) -> DenseProcess | None:
+        """The dense child process's handle (``dense_process``), or None (a thread)."""
+        return self._process
 
     def publish(self, out: Any, engine: OwlEngine | None, camera: CameraModel | None) -> None:
         """Hand one pipeline Output to the dense thread, which publishes what is
@@ -482,11 +483,26 @@ class DensePublishers:
     def _measure(
         self, job: DenseJob, work: CameraModel, header: Any, speed: Any, listening: Any
     ) -> None:
-        result = self.stage.finish(job)
-        if result is None:
-            return
-        stride = self.stage.options.dense_cloud_stride
-        msgs = build_messages(result, work, header, speed, stride, listening.__contains__)
+        wanted = listening.__contains__
+        if self._process is None:
+            result = self.stage.finish(job)
+            if result is None:
+                return
+            stride = self.stage.options.dense_cloud_stride
+            msgs = build_messages(result, work, header, speed, stride, wanted)
+        else:
+            try:
+                kind, summary, arrays = self._process.measure(
+                    self.stage.request(job, speed, listening)
+                )
+            except DenseProcessError as err:
+                self.stage.record_error(f"{err}; it starts again with the next frame")
+                return
+            if kind != "ok":
+                self.stage.record_error(summary)
+                return
+            self.stage.record(summary)
+            msgs = arrays_to_messages(arrays, work, header, wanted)
         for topic, msg in msgs.items():
             self._pubs[topic].publish(msg)
 
@@ -496,11 +512,13 @@ class DensePublishers:
             return self._cond.wait_for(lambda: self._pending is None and not self._busy, timeout_s)
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Finish the handed-over job and stop the dense thread."""
+        """Finish the handed-over job and stop the dense thread (and process)."""
         with self._cond:
             self._closing = True
             self._cond.notify_all()
         self._thread.join(timeout=timeout_s)
+        if self._process is not None:
+            self._process.close(timeout_s)
 
     @property
     def publishers(self) -> list[Any]:

@@ -520,6 +520,15 @@ PARAMS: tuple[Param, ...] = (
         read_only=True,
     ),
     Param(
+        "dense_process",
+        "bool",
+        True,
+        "the node runs the dense stage in a child process of its own (owl-dense), so it does "
+        "not take turns with the sparse engine at Python's GIL; false: in a thread of the "
+        "node (owl_process always measures in its own thread)",
+        read_only=True,
+    ),
+    Param(
         "dense_width",
         "int",
         320,
@@ -614,6 +623,7 @@ class NodeOptions:
         diagnostics_period_s: period of /diagnostics, s.
         calibration_check: run the live camera-IMU calibration check.
         dense: run the dense stage (owl_ros.dense_outputs) and offer its topics.
+        dense_process: the node's dense stage runs in a child process (else a thread).
         dense_width, dense_height: its working size, px.
         dense_preset: DIS preset name.
         dense_baseline_frames: flow baseline, frames.
@@ -638,6 +648,7 @@ class NodeOptions:
     diagnostics_period_s: float = 1.0
     calibration_check: bool = True
     dense: bool = False
+    dense_process: bool = True
     dense_width: int = 320
     dense_height: int = 240
     dense_preset: str = "balanced"

@@ -105,8 +105,9 @@ class Measurement:
         clouds: clouds received for them.
         kept_up: clouds / images (1.0 = every frame processed).
         latency_ms_p50, latency_ms_p95, latency_ms_max: publication -> reception, ms.
-        cpu_percent: node process CPU time / wall time over the window, % of one core.
-        rss_mb: node resident set size at the end, MiB.
+        cpu_percent: node CPU time (with its dense process) / wall time over the window,
+            % of one core.
+        rss_mb: node resident set size at the end (with its dense process), MiB.
         points_per_cloud: mean points per non-empty cloud.
         counted_sent: images published between the node's first ``/diagnostics`` in the
             window and its last one (the span its counters below cover).
@@ -187,16 +188,48 @@ def render_clip(scenario: str, seconds: float, width: int, height: int, rate: fl
     return _Clip(images, imus, info, duration, sim.camera_to_imu_xyzw)
 
 
+def proc_tree(pid: int) -> list[int]:
+    """Process ``pid`` and its live descendants (the node's dense process), from /proc."""
+    out = [pid]
+    for p in out:  # grows while walked: breadth first
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                out += [int(k) for k in (task / "children").read_text().split()]
+            except OSError:  # the task ended meanwhile
+                continue
+    return out
+
+
 def proc_cpu_s(pid: int) -> float:
-    """User + system CPU time of process ``pid`` (all its threads), s, from /proc."""
-    stat = Path(f"/proc/{pid}/stat").read_text()
-    fields = stat.rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    """User + system CPU time of process ``pid`` and its live descendants (all their
+    threads), s, from /proc: the node's CPU includes its dense process."""
+    total = 0
+    for p in proc_tree(pid):
+        try:
+            stat = Path(f"/proc/{p}/stat").read_text()
+        except OSError:
+            if p == pid:
+                raise
+            continue  # a child that ended meanwhile
+        fields = stat.rsplit(")", 1)[1].split()  # after the command name (may hold spaces)
+        total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
 
 
 def proc_rss_mb(pid: int) -> float:
-    """Resident set size (VmRSS) of process ``pid``, MiB, from /proc; NaN when absent."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+    """Resident set size (VmRSS) of process ``pid`` and its live descendants, MiB (shared
+    pages counted in each), from /proc; NaN when ``pid`` is absent."""
+    sizes = [_rss_mb(p) for p in proc_tree(pid)]
+    return float(sum(x for x in sizes[1:] if x == x) + sizes[0])
+
+
+def _rss_mb(pid: int) -> float:
+    """VmRSS of one process, MiB; NaN when absent."""
+    try:
+        text = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return float("nan")
+    for line in text.splitlines():
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024.0
     return float("nan")

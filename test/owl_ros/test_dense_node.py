@@ -7,42 +7,19 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from rclpy.serialization import deserialize_message
 
 from bags.cli import make_bag
-from bags.io import BagReader
 from msg_adapters.image import image_to_array
-from msg_adapters.msgtypes import message_class
 from owl_ros.dense_outputs import DensePublishers
 from owl_ros.params import build_options
-from owl_ros.pipeline import Output, Pipeline
-from owl_ros.roles import Role
+from owl_ros.pipeline import Output
 
 pytestmark = [pytest.mark.dds]
 
 
-def _outputs(bag: Path, options: Any) -> list[tuple[Output, Any, Any]]:
-    now = [0]  # the pipeline's clock: the bag's log time
-    pipeline = Pipeline(options, clock=lambda: now[0])
-    outs: list[tuple[Output, Any, Any]] = []
-    roles = {
-        "/camera/image_raw": Role.IMAGE,
-        "/camera/camera_info": Role.CAMERA_INFO,
-        "/imu/data": Role.IMU,
-    }
-    with BagReader(bag) as reader:
-        types = {t: i.msgtype for t, i in reader.topics.items()}
-        for raw in reader.messages(list(roles)):
-            msg = deserialize_message(raw.data, message_class(types[raw.topic]))
-            now[0] = raw.log_time_ns
-            got = pipeline.add(roles[raw.topic], msg, raw.log_time_ns) + pipeline.poll()
-            for out in got:
-                outs.append((out, pipeline.engine, pipeline.camera))
-    return outs
-
-
+@pytest.mark.parametrize("in_process", [True, False], ids=["process", "thread"])
 def test_dense_outputs_built_only_while_subscribed(
-    tmp_path: Path, ros_domain_env: dict[str, str]
+    tmp_path: Path, ros_domain_env: dict[str, str], pipeline_outputs: Any, in_process: bool
 ) -> None:
     import rclpy
     from rclpy.context import Context
@@ -53,8 +30,9 @@ def test_dense_outputs_built_only_while_subscribed(
     bag = tmp_path / "street"
     args = ["street", str(bag), "--seconds", "0.5", "--width", "160", "--height", "120"]
     assert make_bag.main([*args, "--quiet"]) == 0
-    options = build_options({"dense": True, "dense_width": 80, "dense_height": 60})
-    outs = _outputs(bag, options)
+    values = {"dense": True, "dense_width": 80, "dense_height": 60}
+    options = build_options({**values, "dense_process": in_process})
+    outs = pipeline_outputs(bag, options)
     assert len(outs) >= 10
     context = Context()
     rclpy.init(context=context)
@@ -62,6 +40,7 @@ def test_dense_outputs_built_only_while_subscribed(
         node = rclpy.create_node("owl", context=context)
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         pubs = DensePublishers(node, options, qos)
+        assert (pubs.process is not None) == in_process
         half = len(outs) // 2
         for out, engine, camera in outs[:half]:
             pubs.publish(out, engine, camera)
@@ -84,7 +63,7 @@ def test_dense_outputs_built_only_while_subscribed(
         handed = len(outs) - half - 1
         status = pubs.stage.status().value_map()
         measured = int(status["dense_frames_total"])
-        assert measured + int(status["dropped_for_newer_total"]) == handed
+        assert measured + int(status["dropped_for_newer_total"]) == handed, status
         while len(got) < measured and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
         assert len(got) == measured >= 1
@@ -94,6 +73,73 @@ def test_dense_outputs_built_only_while_subscribed(
         assert image_to_array(got[-1]).shape == (60, 80)
         assert got[-1].encoding == "32FC1"
         pubs.close()
+        assert pubs.process is None or pubs.process.pid is None  # the child has exited
+        listener.destroy_node()
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
+
+
+def test_a_dead_dense_process_is_said_and_started_again(
+    tmp_path: Path, ros_domain_env: dict[str, str], pipeline_outputs: Any
+) -> None:
+    """The dense process killed between frames: ``owl: dense`` WARNs that it exited (with
+    its exit code), the node goes on, and the next frame starts a new one that publishes."""
+    import os
+    import signal
+
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    bag = tmp_path / "street"
+    args = ["street", str(bag), "--seconds", "0.4", "--width", "160", "--height", "120"]
+    assert make_bag.main([*args, "--quiet"]) == 0
+    options = build_options({"dense": True, "dense_width": 80, "dense_height": 60})
+    outs = pipeline_outputs(bag, options)
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node("owl", context=context)
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        pubs = DensePublishers(node, options, qos)
+        got: list[Any] = []
+        listener = rclpy.create_node("listener", context=context)
+        listener.create_subscription(Image, "owl/range_over_speed", got.append, qos)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(listener)
+        deadline = time.monotonic() + 10.0
+        ros_pub = next(p for p in pubs.publishers if p.topic_name == "/owl/range_over_speed")
+        while ros_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+
+        def feed(items: list[Any]) -> None:
+            for out, engine, camera in items:
+                pubs.publish(out, engine, camera)
+                assert pubs.wait_idle(30.0)  # one frame at a time: none dropped
+
+        feed(outs[:3])
+        assert pubs.process is not None and pubs.process.starts == 1
+        first = pubs.process.pid
+        assert first is not None
+        assert Path(f"/proc/{first}/comm").read_text().strip() == "owl-dense"
+        os.kill(first, signal.SIGKILL)
+        feed(outs[3:4])
+        dead = pubs.stage.status()
+        assert dead.level.name == "WARN"
+        assert "the dense process exited (code -9)" in dead.message, dead.message
+        assert int(dead.value_map()["dense_errors_total"]) == 1
+        feed(outs[4:6])
+        again = pubs.stage.status()
+        assert again.level.name == "OK", again.message
+        assert pubs.process.starts == 2 and pubs.process.pid not in (None, first)
+        assert int(again.value_map()["dense_frames_total"]) == 4  # 2 before, 2 after
+        while len(got) < 4 and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        assert len(got) == 4
+        pubs.close()
         listener.destroy_node()
         node.destroy_node()
     finally:
@@ -101,7 +147,7 @@ def test_dense_outputs_built_only_while_subscribed(
 
 
 def test_dense_status_says_why_a_frame_gave_nothing_and_shows_no_old_figures(
-    tmp_path: Path,
+    tmp_path: Path, pipeline_outputs: Any
 ) -> None:
     """``owl: dense`` after a failed frame WARNs with the reason instead of showing the
     last good frame's time to contact as current; a good frame clears it; a reset (nobody
@@ -112,7 +158,7 @@ def test_dense_status_says_why_a_frame_gave_nothing_and_shows_no_old_figures(
     args = ["street", str(bag), "--seconds", "0.5", "--width", "160", "--height", "120"]
     assert make_bag.main([*args, "--quiet"]) == 0
     options = build_options({"dense": True, "dense_width": 80, "dense_height": 60})
-    outs = _outputs(bag, options)
+    outs = pipeline_outputs(bag, options)
     stage = DenseStage(options)
 
     def feed(items: list[tuple[Output, Any, Any]], image: Any = None) -> int:

@@ -121,6 +121,7 @@ def test_descriptors_carry_ranges_and_read_only() -> None:
         "speed_topic",
         "publish_debug_image",
         "dense",
+        "dense_process",
         "rectified",
     }
 
