@@ -529,6 +529,13 @@ class DensePublishers:
 class DenseWriter:
     """``owl_process``'s dense topics: every message of every frame, into a bag writer.
 
+    With ``dense_process`` (the default) the child process measures a frame while the
+    caller's engine runs the next one: :meth:`write` hands over this frame's job after
+    writing the previous frame's messages, and :meth:`flush` (before the diagnostics, and
+    at the end) writes the one in flight. The messages are those of the thread: the same
+    arrays, at the same stamps; only their place among the other topics' messages in the
+    file differs (a reader takes them in log-time order).
+
     Args:
         options: node options.
         writer: a ``bags.io.BagWriter`` (topics are added here, ``/`` + the relative name).
@@ -539,22 +546,60 @@ class DenseWriter:
         self.stage = DenseStage(options)
         self._writer = writer
         self._encode = encode
+        self._process = DenseProcess() if options.dense_process else None
+        self._in_flight: tuple[CameraModel, Any, int] | None = None
         for topic, kind in TOPICS.items():
             writer.add_topic("/" + topic, kind, "reliable")
 
     def write(self, out: Any, engine: OwlEngine | None, camera: CameraModel | None) -> None:
-        """Run the dense stage on one pipeline Output and write all its messages."""
+        """Run the dense stage on one pipeline Output and write all its messages (with a
+        dense process: those of the previous frame, and hand this one over)."""
         from msg_adapters.stamps import header_to_ns
 
         job = self.stage.begin(engine, camera, out.image, out.result)
-        if job is None:
-            return
-        result = self.stage.finish(job)
         work = self.stage.camera_info_model
-        if result is None or work is None:
+        if job is None or work is None:
             return
-        stride = self.stage.options.dense_cloud_stride
         stamp = max(header_to_ns(out.header), 0)
-        msgs = build_messages(result, work, out.header, out.speed, stride, lambda _: True)
+        if self._process is None:
+            result = self.stage.finish(job)
+            if result is not None:
+                stride = self.stage.options.dense_cloud_stride
+                msgs = build_messages(result, work, out.header, out.speed, stride, lambda _: True)
+                self._write(msgs, stamp)
+            return
+        self.flush()
+        try:
+            self._process.send(self.stage.request(job, out.speed, frozenset(TOPICS)))
+        except DenseProcessError as err:
+            self.stage.record_error(f"{err}; it starts again with the next frame")
+            return
+        self._in_flight = (work, out.header, stamp)
+
+    def flush(self) -> None:
+        """Write the messages of the frame the dense process is measuring (none without)."""
+        if self._process is None or self._in_flight is None:
+            return
+        (work, header, stamp), self._in_flight = self._in_flight, None
+        try:
+            kind, summary, arrays = self._process.receive()
+        except DenseProcessError as err:
+            self.stage.record_error(f"{err}; it starts again with the next frame")
+            return
+        if kind != "ok":
+            self.stage.record_error(summary)
+            return
+        self.stage.record(summary)
+        self._write(arrays_to_messages(arrays, work, header, lambda _: True), stamp)
+
+    def close(self) -> None:
+        """Write what is in flight and stop the dense process."""
+        try:
+            self.flush()
+        finally:
+            if self._process is not None:
+                self._process.close()
+
+    def _write(self, msgs: dict[str, Any], stamp: int) -> None:
         for topic, msg in msgs.items():
             self._writer.write_raw("/" + topic, stamp, self._encode(msg, TOPICS[topic]))

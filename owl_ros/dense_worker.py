@@ -7,7 +7,7 @@ dense thread then slows the sparse engine by more than its CPU share (docs/dense
 crosses between the two is small (the two working images and a few matrices one way, the
 published arrays the other, about 1 MB a frame at 320x240, a millisecond of copying).
 
-The child is started with ``python -m owl_ros.dense_worker FD`` and talks to the node over
+The child is started with ``python -P -m owl_ros.dense_worker FD`` and talks to the node over
 a socket pair (:class:`multiprocessing.connection.Connection`, pickled objects); it imports
 only numpy, OpenCV and ``owl_core``, names itself ``owl-dense`` (``top``, ``ps``), runs
 numpy's BLAS on one thread like the node, and exits when the node closes its end (or dies:
@@ -233,9 +233,10 @@ class DenseProcessError(RuntimeError):
 class DenseProcess:
     """The node's handle on the dense child process, started on the first request.
 
-    :meth:`measure` is called from one thread at a time (the node's dense thread); it
-    blocks (without the GIL) until the child answers. A child that died is started again
-    at the next request.
+    :meth:`measure` (or :meth:`send`, then :meth:`receive`: ``owl_process`` lets the child
+    measure one frame while its engine runs the next) blocks without the GIL until the
+    child answers; one request at a time. A child that died is started again at the next
+    request.
 
     Args:
         python: the interpreter to run the child with (default this one).
@@ -252,6 +253,7 @@ class DenseProcess:
         self._proc: subprocess.Popen[bytes] | None = None
         self._conn: Connection | None = None
         self._answered = False
+        self._waiting = False
         self._lock = threading.Lock()
         self.starts = 0
 
@@ -269,7 +271,9 @@ class DenseProcess:
         env["PYTHONPATH"] = os.pathsep.join(path)
         try:
             self._proc = subprocess.Popen(
-                [self._python, "-m", "owl_ros.dense_worker", str(fd)],
+                # -P: not the working directory first on sys.path (3.11+), so the child
+                # imports the owl_ros this process runs, not a checkout it stands in
+                [self._python, "-P", "-m", "owl_ros.dense_worker", str(fd)],
                 pass_fds=(fd,),
                 env=env,
                 stdin=subprocess.DEVNULL,
@@ -286,30 +290,61 @@ class DenseProcess:
 
     def measure(self, req: DenseRequest) -> tuple[str, Any, Any]:
         """The child's answer to one request (``("ok", DenseSummary, arrays)`` or
-        ``("error", line, None)``).
+        ``("error", line, None)``): :meth:`send` then :meth:`receive`.
 
         Raises:
             DenseProcessError: the child could not be started, died, or did not answer in
                 time (it is then stopped; the next call starts a new one).
         """
+        self.send(req)
+        return self.receive()
+
+    def send(self, req: DenseRequest) -> None:
+        """Hand one request to the child (starting it if none runs) and return at once;
+        :meth:`receive` gets the answer. One request at a time.
+
+        Raises:
+            DenseProcessError: as :meth:`measure`.
+        """
         with self._lock:
             conn = self._conn if self._conn is not None else self._start()
-            wait = self._timeout_s if self._answered else self._start_timeout_s
             try:
                 conn.send(req)
+            except OSError as err:
+                code = self._stop_locked()
+                raise DenseProcessError(f"the dense process exited (code {code})") from err
+            self._waiting = True
+
+    def receive(self) -> tuple[str, Any, Any]:
+        """The answer to the request :meth:`send` handed over (blocks, without the GIL).
+
+        Raises:
+            DenseProcessError: as :meth:`measure`, or no request is waiting.
+        """
+        with self._lock:
+            conn = self._conn
+            if conn is None or not self._waiting:
+                raise DenseProcessError("no request is waiting for the dense process")
+            self._waiting = False
+            wait = self._timeout_s if self._answered else self._start_timeout_s
+            try:
                 if not conn.poll(wait):
+                    self._stop_locked()
                     raise DenseProcessError(f"the dense process gave no answer in {wait:g} s")
                 answer: tuple[str, Any, Any] = conn.recv()
             except (EOFError, OSError) as err:
                 code = self._stop_locked()
                 raise DenseProcessError(f"the dense process exited (code {code})") from err
-            except DenseProcessError:
-                self._stop_locked()
-                raise
             self._answered = True
             return answer
 
+    @property
+    def waiting(self) -> bool:
+        """Whether a request was sent and its answer not yet received."""
+        return self._waiting
+
     def _stop_locked(self, timeout_s: float = 5.0) -> int | None:
+        self._waiting = False
         conn, self._conn = self._conn, None
         proc, self._proc = self._proc, None
         if conn is not None:

@@ -523,9 +523,10 @@ PARAMS: tuple[Param, ...] = (
         "dense_process",
         "bool",
         True,
-        "the node runs the dense stage in a child process of its own (owl-dense), so it does "
-        "not take turns with the sparse engine at Python's GIL; false: in a thread of the "
-        "node (owl_process always measures in its own thread)",
+        "the dense stage runs in a child process of its own (owl-dense), so it does not "
+        "take turns with the sparse engine at Python's GIL (owl_process: it measures one "
+        "frame while the engine runs the next); false: in a thread of the node (in "
+        "owl_process's own thread)",
         read_only=True,
     ),
     Param(
@@ -623,7 +624,7 @@ class NodeOptions:
         diagnostics_period_s: period of /diagnostics, s.
         calibration_check: run the live camera-IMU calibration check.
         dense: run the dense stage (owl_ros.dense_outputs) and offer its topics.
-        dense_process: the node's dense stage runs in a child process (else a thread).
+        dense_process: the dense stage runs in a child process (else in a thread).
         dense_width, dense_height: its working size, px.
         dense_preset: DIS preset name.
         dense_baseline_frames: flow baseline, frames.

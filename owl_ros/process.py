@@ -328,6 +328,8 @@ class _Run:
     def diagnostics(self) -> None:
         """Write the pipeline's /diagnostics at the bag time now."""
         now_ns = self.now_ns
+        if self.dense is not None:
+            self.dense.flush()  # the status counts every frame handed over so far
         extra = [self.dense.stage.status()] if self.dense is not None else []
         msg = records_to_msg(self.pipeline.diagnostics() + extra, now_ns)
         self.writer.write(DIAGNOSTICS.bag, max(now_ns, 0), msg)
@@ -450,18 +452,22 @@ def process_bag(
             run = _Run(bag, writer, opts, node_opts, roles, copy)
             last_ns = bag.start_ns
             try:
-                for raw in bag.messages(sorted(set(read_topics) | set(copy))):
-                    run.handle(raw)
-                    last_ns = raw.log_time_ns
-                    done += 1
-                    report(done, run.frames, False)
-            except CorruptBagError as err:
-                damage = str(err)
-            if damage is None and bag.damage is not None:
-                damage = f"truncated or corrupt bag {bag.path}: {bag.damage}"
-            run.now_ns = last_ns
-            run.emit(run.pipeline.poll(flush=True))
-            run.diagnostics()
+                try:
+                    for raw in bag.messages(sorted(set(read_topics) | set(copy))):
+                        run.handle(raw)
+                        last_ns = raw.log_time_ns
+                        done += 1
+                        report(done, run.frames, False)
+                except CorruptBagError as err:
+                    damage = str(err)
+                if damage is None and bag.damage is not None:
+                    damage = f"truncated or corrupt bag {bag.path}: {bag.damage}"
+                run.now_ns = last_ns
+                run.emit(run.pipeline.poll(flush=True))
+                run.diagnostics()
+            finally:
+                if run.dense is not None:
+                    run.dense.close()  # the dense process ends with the run, even on error
             report(done, run.frames, True)
             totals = run.pipeline.totals.as_dict()
             totals.update({f"undecodable {t}": n for t, n in run.undecodable.items()})

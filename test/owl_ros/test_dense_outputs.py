@@ -75,6 +75,35 @@ def test_sparse_outputs_unchanged_and_dense_topics_written(outputs: tuple[Any, A
         assert len(on["/" + topic]) == n_images - 1
 
 
+def test_the_dense_process_writes_what_the_thread_writes(
+    bag: Path, outputs: tuple[Any, Any], tmp_path: Path
+) -> None:
+    """``dense_process: false`` (owl_process's own thread) against the default (a child
+    process measuring one frame while the engine runs the next): every message of every
+    topic the same bytes at the same log time, and ``owl: dense`` the same but for its wall
+    time."""
+    on, _ = outputs
+    node = build_options(
+        {"dense": True, "dense_width": DW, "dense_height": DH, "ttc_warn_s": 100.0}
+    )
+    assert node.dense_process
+    process_bag(bag, tmp_path / "thread", ProcessOptions(node=replace(node, dense_process=False)))
+    thread = read(tmp_path / "thread")
+    assert set(thread) == set(on)
+    for topic in sorted(on):
+        if topic == "/diagnostics":  # dense_ms is a wall time: compare the rest
+            continue
+        assert [(t, d) for t, d, _ in thread[topic]] == [(t, d) for t, d, _ in on[topic]], topic
+    for (t0, _, a), (t1, _, b) in zip(thread["/diagnostics"], on["/diagnostics"], strict=True):
+        assert t0 == t1
+        ra, rb = msg_to_records(a)[1], msg_to_records(b)[1]
+        assert [r.name for r in ra] == [r.name for r in rb]
+        x, y = (next(r for r in rs if r.name == "owl: dense") for rs in (ra, rb))
+        assert (x.level, x.message) == (y.level, y.message)
+        vx = {k: v for k, v in x.value_map().items() if k != "dense_ms"}
+        assert vx == {k: v for k, v in y.value_map().items() if k != "dense_ms"}
+
+
 def test_images_are_32fc1_on_the_working_grid_with_matching_camera_info(
     bag: Path, outputs: tuple[Any, Any]
 ) -> None:

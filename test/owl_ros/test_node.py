@@ -354,6 +354,37 @@ def test_replay_at_real_rate(
     assert float(values["latency_ms_p50"]) > 0 or values["latency_ms_p50"] == "nan"
 
 
+def test_dense_outputs_from_the_node_process_and_its_child_ends_with_it(
+    ros_domain_env: dict[str, str], collector: Collector, bag: Path
+) -> None:
+    """owl_node with ``dense: true``: the dense images come from its ``owl-dense`` child
+    process, which ends when the node does (SIGINT)."""
+    from sensor_msgs.msg import Image
+
+    images: list[Any] = []
+    qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+    collector.node.create_subscription(Image, "/owl/range_over_speed", images.append, qos)
+    node = start_node(ros_domain_env, "dense:=true", "dense_width:=160", "dense_height:=120")
+    children: set[int] = set()
+    try:
+        collector.wait_for_node()
+        replay(ros_domain_env, bag)
+        collector.wait_settled(1)
+        collector.wait_for(lambda: len(images) >= 1, 15.0, "a dense image")
+        for task in Path(f"/proc/{node.pid}/task").glob("*"):
+            children |= {int(c) for c in (task / "children").read_text().split()}
+        names = {Path(f"/proc/{c}/comm").read_text().strip() for c in children}
+    finally:
+        code, err = stop_node(node)
+    assert code == 0, err
+    assert "Traceback" not in err
+    assert names == {"owl-dense"}, names
+    assert not [c for c in children if Path(f"/proc/{c}").exists()], "owl-dense outlived the node"
+    assert images[-1].encoding == "32FC1" and (images[-1].height, images[-1].width) == (120, 160)
+    _, _, values = collector.status("dense")
+    assert int(values["dense_frames_total"]) >= 1 and int(values["dense_errors_total"]) == 0
+
+
 def test_replay_with_sim_time_and_clock(
     ros_domain_env: dict[str, str],
     collector: Collector,
