@@ -78,6 +78,10 @@ TOPICS: dict[str, str] = {
 }
 
 
+#: what ``owl: dense`` adds when the dense process failed
+_AGAIN = "; it starts again with the next frame"
+
+
 def dense_options(options: NodeOptions) -> DenseOptions:
     """The dense stage's settings from the node options."""
     return DenseOptions(
@@ -296,6 +300,22 @@ class DenseStage:
             topics=topics,
         )
 
+    def answer(self, get: Callable[[], tuple[str, Any, Any]]) -> dict[str, Any] | None:
+        """The arrays of the dense process's answer (``get``: its ``measure`` or
+        ``receive``), its summary kept for ``owl: dense``; None after an error (said in the
+        status)."""
+        try:
+            kind, summary, arrays = get()
+        except DenseProcessError as err:
+            self.record_error(f"{err}{_AGAIN}")
+            return None
+        if kind != "ok":
+            self.record_error(summary)
+            return None
+        self.record(summary)
+        result: dict[str, Any] = arrays
+        return result
+
     def record(self, summary: DenseSummary) -> None:
         """Keep one frame's dense result for ``owl: dense`` (any thread)."""
         with self._lock:
@@ -491,17 +511,10 @@ class DensePublishers:
             stride = self.stage.options.dense_cloud_stride
             msgs = build_messages(result, work, header, speed, stride, wanted)
         else:
-            try:
-                kind, summary, arrays = self._process.measure(
-                    self.stage.request(job, speed, listening)
-                )
-            except DenseProcessError as err:
-                self.stage.record_error(f"{err}; it starts again with the next frame")
+            process, req = self._process, self.stage.request(job, speed, listening)
+            arrays = self.stage.answer(lambda: process.measure(req))
+            if arrays is None:
                 return
-            if kind != "ok":
-                self.stage.record_error(summary)
-                return
-            self.stage.record(summary)
             msgs = arrays_to_messages(arrays, work, header, wanted)
         for topic, msg in msgs.items():
             self._pubs[topic].publish(msg)
@@ -572,7 +585,7 @@ class DenseWriter:
         try:
             self._process.send(self.stage.request(job, out.speed, frozenset(TOPICS)))
         except DenseProcessError as err:
-            self.stage.record_error(f"{err}; it starts again with the next frame")
+            self.stage.record_error(f"{err}{_AGAIN}")
             return
         self._in_flight = (work, out.header, stamp)
 
@@ -581,16 +594,9 @@ class DenseWriter:
         if self._process is None or self._in_flight is None:
             return
         (work, header, stamp), self._in_flight = self._in_flight, None
-        try:
-            kind, summary, arrays = self._process.receive()
-        except DenseProcessError as err:
-            self.stage.record_error(f"{err}; it starts again with the next frame")
-            return
-        if kind != "ok":
-            self.stage.record_error(summary)
-            return
-        self.stage.record(summary)
-        self._write(arrays_to_messages(arrays, work, header, lambda _: True), stamp)
+        arrays = self.stage.answer(self._process.receive)
+        if arrays is not None:
+            self._write(arrays_to_messages(arrays, work, header, lambda _: True), stamp)
 
     def close(self) -> None:
         """Write what is in flight and stop the dense process."""

@@ -17,15 +17,33 @@ from owl_ros.pipeline import Output
 pytestmark = [pytest.mark.dds]
 
 
+def _listen(context: Any, pubs: DensePublishers, qos: Any) -> tuple[list[Any], Any, Any]:
+    """A listener node on ``owl/range_over_speed`` that the dense publisher has matched:
+    (the list its images go to, the node, an executor spinning nothing else)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import Image
+
+    got: list[Any] = []
+    listener = rclpy.create_node("listener", context=context)
+    listener.create_subscription(Image, "owl/range_over_speed", got.append, qos)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(listener)
+    deadline = time.monotonic() + 10.0
+    ros_pub = next(p for p in pubs.publishers if p.topic_name == "/owl/range_over_speed")
+    while ros_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+    assert ros_pub.get_subscription_count() == 1
+    return got, listener, executor
+
+
 @pytest.mark.parametrize("in_process", [True, False], ids=["process", "thread"])
 def test_dense_outputs_built_only_while_subscribed(
     tmp_path: Path, ros_domain_env: dict[str, str], pipeline_outputs: Any, in_process: bool
 ) -> None:
     import rclpy
     from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import Image
 
     bag = tmp_path / "street"
     args = ["street", str(bag), "--seconds", "0.5", "--width", "160", "--height", "120"]
@@ -45,16 +63,8 @@ def test_dense_outputs_built_only_while_subscribed(
         for out, engine, camera in outs[:half]:
             pubs.publish(out, engine, camera)
         assert pubs.stage.last is None  # nobody listened: the dense stage never ran
-        got: list[Any] = []
-        listener = rclpy.create_node("listener", context=context)
-        listener.create_subscription(Image, "owl/range_over_speed", got.append, qos)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(listener)
+        got, listener, executor = _listen(context, pubs, qos)
         deadline = time.monotonic() + 10.0
-        ros_pub = next(p for p in pubs.publishers if p.topic_name == "/owl/range_over_speed")
-        while ros_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
-        assert ros_pub.get_subscription_count() == 1
         for out, engine, camera in outs[half:]:
             pubs.publish(out, engine, camera)
         assert pubs.wait_idle(10.0)
@@ -90,9 +100,7 @@ def test_a_dead_dense_process_is_said_and_started_again(
 
     import rclpy
     from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import Image
 
     bag = tmp_path / "street"
     args = ["street", str(bag), "--seconds", "0.4", "--width", "160", "--height", "120"]
@@ -105,15 +113,8 @@ def test_a_dead_dense_process_is_said_and_started_again(
         node = rclpy.create_node("owl", context=context)
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         pubs = DensePublishers(node, options, qos)
-        got: list[Any] = []
-        listener = rclpy.create_node("listener", context=context)
-        listener.create_subscription(Image, "owl/range_over_speed", got.append, qos)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(listener)
+        got, listener, executor = _listen(context, pubs, qos)
         deadline = time.monotonic() + 10.0
-        ros_pub = next(p for p in pubs.publishers if p.topic_name == "/owl/range_over_speed")
-        while ros_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
 
         def feed(items: list[Any]) -> None:
             for out, engine, camera in items:
