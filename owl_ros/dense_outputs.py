@@ -1,10 +1,13 @@
 """Dense OWL outputs of node ``owl`` and ``owl_process`` (parameter ``dense: true``).
 
 The glue between :class:`~owl_ros.pipeline.Pipeline` outputs and
-:class:`owl_core.dense.DenseOwl`: after each processed frame, :meth:`DenseStage.run` hands
-the grey image, the gyro rotation since the dense stage's previous image (bias removed,
-from the engine's gyro buffer) and the engine's heading to the dense stage, and
-:func:`build_messages` turns its result into messages (only the ones asked for):
+:class:`owl_core.dense.DenseOwl`: after each processed frame, :meth:`DenseStage.begin`
+takes the grey image, the gyro rotation since the dense stage's previous image (bias
+removed, from the engine's gyro buffer) and the engine's heading; the dense stage measures
+them in a child process (``dense_process``, :mod:`owl_ros.dense_worker`, which returns the
+published arrays) or in this process (:meth:`DenseStage.finish`, then
+:func:`build_messages`), and :func:`arrays_to_messages` turns the arrays into messages
+(only the ones asked for):
 
 | topic | type | content |
 |---|---|---|
@@ -423,11 +426,14 @@ def build_messages(
 class DensePublishers:
     """The node's dense publishers; builds each message only while it has a subscriber.
 
-    The dense stage runs in a thread of its own, so that on a machine with two cores it
+    The dense stage runs beside the sparse engine, so that on a machine with two cores it
     measures one frame while the node's worker runs the sparse engine on the next:
     :meth:`publish` takes the image and what the dense stage needs from the engine (in the
-    caller's thread, which owns the engine) and hands the job over; newest wins when the
-    dense thread is still busy (the dropped job is counted in ``owl: dense``).
+    caller's thread, which owns the engine) and hands the job to the ``owl-dense`` thread;
+    newest wins when it is still busy (the dropped job is counted in ``owl: dense``). The
+    thread sends the job to the dense process and publishes what it returns
+    (``dense_process``, the default: the process has its own interpreter, so the two
+    stages do not take turns at the GIL), or measures it itself.
 
     Args:
         node: the rclpy node (publishers are created on it, reliable QoS ``qos``).
