@@ -189,15 +189,25 @@ def render_clip(scenario: str, seconds: float, width: int, height: int, rate: fl
 
 
 def proc_tree(pid: int) -> list[int]:
-    """Process ``pid`` and its live descendants (the node's dense process), from /proc."""
+    """Process ``pid`` and its live descendants (the node's dense process; not the
+    zombies, which have ended), breadth first, from /proc."""
     out = [pid]
-    for p in out:  # grows while walked: breadth first
+    for p in out:  # grows while walked
         for task in Path(f"/proc/{p}/task").glob("*"):
             try:
-                out += [int(k) for k in (task / "children").read_text().split()]
+                kids = [int(k) for k in (task / "children").read_text().split()]
             except OSError:  # the task ended meanwhile
                 continue
+            out += [k for k in kids if _state(k) not in ("Z", "")]
     return out
+
+
+def _state(pid: int) -> str:
+    """The state letter of process ``pid`` (R, S, Z...), "" when it is gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return ""
 
 
 def proc_cpu_s(pid: int) -> float:

@@ -13,30 +13,12 @@ from bags.sim import scenarios
 from bags.sim.scenarios import SimOptions
 from owl_ros.tools.batch import PROG, find_bags, main
 from owl_ros.tools.evaluate import evaluate, summarize
+from owl_ros.tools.latency import proc_tree
 
 
 def _descendants(pid: int) -> set[int]:
     """Pids of every live process below ``pid`` (from /proc)."""
-    children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        fields = stat.rsplit(")", 1)[1].split()
-        if fields[0] == "Z":
-            continue
-        children.setdefault(int(fields[1]), []).append(int(entry.name))
-    out: set[int] = set()
-    todo = [pid]
-    while todo:
-        for c in children.get(todo.pop(), []):
-            if c not in out:
-                out.add(c)
-                todo.append(c)
-    return out
+    return set(proc_tree(pid)[1:])
 
 
 @pytest.mark.slow

@@ -37,6 +37,7 @@ from msg_adapters.stamps import header_to_ns
 from owl_ros.node import OwlNode
 from owl_ros.params import ParameterError
 from owl_ros.process import ProcessOptions, Summary, process_bag
+from owl_ros.tools.latency import proc_tree
 from owl_ros.tools.live import LiveNode
 from owl_ros.topics import RESULT_TOPICS
 
@@ -359,20 +360,16 @@ def test_dense_outputs_from_the_node_process_and_its_child_ends_with_it(
 ) -> None:
     """owl_node with ``dense: true``: the dense images come from its ``owl-dense`` child
     process, which ends when the node does (SIGINT)."""
-    from sensor_msgs.msg import Image
-
     images: list[Any] = []
     qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
     collector.node.create_subscription(Image, "/owl/range_over_speed", images.append, qos)
     node = start_node(ros_domain_env, "dense:=true", "dense_width:=160", "dense_height:=120")
-    children: set[int] = set()
     try:
         collector.wait_for_node()
         replay(ros_domain_env, bag)
         collector.wait_settled(1)
         collector.wait_for(lambda: len(images) >= 1, 15.0, "a dense image")
-        for task in Path(f"/proc/{node.pid}/task").glob("*"):
-            children |= {int(c) for c in (task / "children").read_text().split()}
+        children = set(proc_tree(node.pid)[1:])
         names = {Path(f"/proc/{c}/comm").read_text().strip() for c in children}
     finally:
         code, err = stop_node(node)
