@@ -146,6 +146,21 @@ class DenseJob:
     speed_rate: float
     readout: Readout | None = None
 
+    def measure(self) -> DenseResult:
+        """Measure the pair in this thread.
+
+        Raises:
+            OwlError: malformed rotation or heading (:meth:`DenseOwl.measure`).
+        """
+        return self.dense.measure(
+            self.pair,
+            self.rotation,
+            self.heading,
+            self.heading_sigma_rad,
+            self.speed_rate,
+            self.readout,
+        )
+
 
 class DenseStage:
     """Runs :class:`~owl_core.dense.DenseOwl` after the sparse engine, frame by frame.
@@ -273,14 +288,7 @@ class DenseStage:
         """Measure a job in this thread and keep its summary for ``owl: dense``; None after
         bad input (said in the status)."""
         try:
-            out = job.dense.measure(
-                job.pair,
-                job.rotation,
-                job.heading,
-                job.heading_sigma_rad,
-                job.speed_rate,
-                job.readout,
-            )
+            out = job.measure()
         except OwlError as err:
             self.record_error(f"dense: {err}")
             return None

@@ -41,14 +41,7 @@ def test_the_process_gives_the_arrays_and_summary_of_the_thread(
     proc = DenseProcess()
     try:
         for job in jobs:
-            here = job.dense.measure(
-                job.pair,
-                job.rotation,
-                job.heading,
-                job.heading_sigma_rad,
-                job.speed_rate,
-                job.readout,
-            )
+            here = job.measure()
             kind, summary, arrays = proc.measure(stage.request(job, 2.5, frozenset(TOPICS)))
             assert kind == "ok"
             ours = summarize(here)
