@@ -44,12 +44,13 @@ from msg_adapters.diagnostics import Level, StatusRecord
 from msg_adapters.image import array_to_image
 from msg_adapters.pointcloud import array_to_cloud
 from owl_core.camera import CameraModel
-from owl_core.dense import DenseOptions, DenseOwl, DenseResult, ImagePair, Readout
+from owl_core.dense import DenseOptions, DenseOwl, DenseResult, Readout
 from owl_core.engine import OwlEngine
 from owl_core.errors import OwlError
 from owl_core.os_thread import name_os_thread
 from owl_core.rolling_shutter import readout_rotations
 from owl_ros.dense_worker import (
+    DenseInputs,
     DenseProcess,
     DenseProcessError,
     DenseRequest,
@@ -124,42 +125,23 @@ class _Last:
 
 @dataclass(frozen=True)
 class DenseJob:
-    """One frame's dense work, everything read from the engine at hand-over time.
+    """One frame's dense work.
 
     Attributes:
         dense: the dense stage that took the images (it owns the flow instance).
-        pair: the image pair to measure.
-        rotation: (3, 3) gyro rotation from the pair's first to its second stamp (bias
-            removed), or None without gyro coverage.
-        heading: (3,) the engine's heading at the second stamp, or None.
-        heading_sigma_rad: its 1-sigma, rad.
-        speed_rate: the engine's ``d ln|t|/dt`` at the second stamp, 1/s.
-        readout: with a rolling shutter (the engine's ``rolling_shutter_readout_s``) the
-            gyro rotations of both images' row times, or None.
+        inputs: what the frame is measured from, read from the engine at hand-over time.
     """
 
     dense: DenseOwl
-    pair: ImagePair
-    rotation: Any
-    heading: Any
-    heading_sigma_rad: float
-    speed_rate: float
-    readout: Readout | None = None
+    inputs: DenseInputs
 
     def measure(self) -> DenseResult:
-        """Measure the pair in this thread.
+        """Measure the frame in this thread.
 
         Raises:
             OwlError: malformed rotation or heading (:meth:`DenseOwl.measure`).
         """
-        return self.dense.measure(
-            self.pair,
-            self.rotation,
-            self.heading,
-            self.heading_sigma_rad,
-            self.speed_rate,
-            self.readout,
-        )
+        return self.inputs.measure(self.dense)
 
 
 class DenseStage:
@@ -274,15 +256,10 @@ class DenseStage:
         else:
             with self._lock:
                 self._last.gyro_missing += 1
-        return DenseJob(
-            dense,
-            pair,
-            rotation,
-            result.heading,
-            result.heading_sigma_rad,
-            result.speed_rate,
-            readout,
+        inputs = DenseInputs(
+            pair, rotation, result.heading, result.heading_sigma_rad, result.speed_rate, readout
         )
+        return DenseJob(dense, inputs)
 
     def finish(self, job: DenseJob) -> DenseResult | None:
         """Measure a job in this thread and keep its summary for ``owl: dense``; None after
@@ -297,19 +274,8 @@ class DenseStage:
 
     def request(self, job: DenseJob, speed: float | None, topics: frozenset[str]) -> DenseRequest:
         """The job as it crosses to the dense process, with what its messages need."""
-        return DenseRequest(
-            camera=job.dense.camera,
-            options=job.dense.options,
-            pair=job.pair,
-            rotation=job.rotation,
-            heading=job.heading,
-            heading_sigma_rad=job.heading_sigma_rad,
-            speed_rate=job.speed_rate,
-            readout=job.readout,
-            speed=speed,
-            stride=self.options.dense_cloud_stride,
-            topics=topics,
-        )
+        stride = self.options.dense_cloud_stride
+        return DenseRequest(job.dense.camera, job.dense.options, job.inputs, speed, stride, topics)
 
     def answer(self, get: Callable[[], tuple[str, Any, Any]]) -> dict[str, Any] | None:
         """The arrays of the dense process's answer (``get``: its ``measure`` or

@@ -40,6 +40,7 @@ from owl_core.errors import OwlError
 
 __all__ = [
     "CLOUD_DTYPE",
+    "DenseInputs",
     "DenseProcess",
     "DenseProcessError",
     "DenseRequest",
@@ -152,18 +153,51 @@ def message_arrays(
 
 
 @dataclass(frozen=True)
+class DenseInputs:
+    """What the dense stage measures one frame from, read from the engine at hand-over.
+
+    Attributes:
+        pair: the image pair (working images, stamps).
+        rotation: (3, 3) gyro rotation from the pair's first to its second stamp (bias
+            removed), or None without gyro coverage.
+        heading: (3,) the sparse engine's heading at the second stamp, or None.
+        heading_sigma_rad: its 1-sigma, rad.
+        speed_rate: the engine's ``d ln|t|/dt`` at the second stamp, 1/s.
+        readout: with a rolling shutter the gyro rotations of both images' row times
+            (:class:`~owl_core.dense.Readout`), or None.
+    """
+
+    pair: ImagePair
+    rotation: Any
+    heading: Any
+    heading_sigma_rad: float
+    speed_rate: float
+    readout: Readout | None = None
+
+    def measure(self, dense: DenseOwl) -> DenseResult:
+        """Dense OWL of these inputs with ``dense`` (:meth:`DenseOwl.measure`).
+
+        Raises:
+            OwlError: malformed rotation or heading.
+        """
+        return dense.measure(
+            self.pair,
+            self.rotation,
+            self.heading,
+            self.heading_sigma_rad,
+            self.speed_rate,
+            self.readout,
+        )
+
+
+@dataclass(frozen=True)
 class DenseRequest:
     """One frame's dense work as it crosses to the child process.
 
     Attributes:
         camera: the input images' camera model.
         options: the dense stage's settings (a change rebuilds the child's stage).
-        pair: the image pair (working images, stamps).
-        rotation: (3, 3) gyro rotation over the pair (bias removed), or None.
-        heading: (3,) the sparse engine's heading at the second stamp, or None.
-        heading_sigma_rad: its 1-sigma, rad.
-        speed_rate: ``d ln|t|/dt`` at the second stamp, 1/s.
-        readout: rolling-shutter row rotations, or None.
+        inputs: what the frame is measured from.
         speed: m/s for metric depth and cloud, or None (seconds).
         stride: owl/dense_points stride, working px.
         topics: the topics to build arrays for.
@@ -171,12 +205,7 @@ class DenseRequest:
 
     camera: CameraModel
     options: DenseOptions
-    pair: ImagePair
-    rotation: Any
-    heading: Any
-    heading_sigma_rad: float
-    speed_rate: float
-    readout: Readout | None
+    inputs: DenseInputs
     speed: float | None
     stride: int
     topics: frozenset[str]
@@ -194,14 +223,7 @@ class _Measurer:
             dense = self._dense
             if dense is None or dense.camera != req.camera or dense.options != req.options:
                 dense = self._dense = DenseOwl(req.camera, req.options)
-            result = dense.measure(
-                req.pair,
-                req.rotation,
-                req.heading,
-                req.heading_sigma_rad,
-                req.speed_rate,
-                req.readout,
-            )
+            result = req.inputs.measure(dense)
             arrays = message_arrays(result, req.speed, req.stride, req.topics.__contains__)
         except OwlError as err:
             return ("error", f"dense: {err}", None)

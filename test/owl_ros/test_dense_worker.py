@@ -78,7 +78,7 @@ def test_bad_input_is_one_line_and_the_process_goes_on(bag: Path, pipeline_outpu
     proc = DenseProcess()
     try:
         good = stage.request(job, None, frozenset(TOPICS))
-        bad = replace(good, rotation=np.full((3, 3), np.nan))
+        bad = replace(good, inputs=replace(good.inputs, rotation=np.full((3, 3), np.nan)))
         kind, line, arrays = proc.measure(bad)
         assert kind == "error" and arrays is None
         assert line.startswith("dense: rotation must be a finite (3, 3) matrix"), line
