@@ -140,6 +140,10 @@ class TrackerOptions:
             pass (capped at ``lk_levels``). It starts at the forward start, where a
             consistent track returns to within ``fb_threshold_px``, so it needs little
             reach (1000 features, 640x480: 0 levels 1.8 ms, 1 level 4.2 ms).
+        lk_backward_window_px: window side of the backward pass, pixels (odd, >= 5; 0:
+            ``lk_window_px``). The check asks for the round trip to within
+            ``fb_threshold_px``, not for the forward pass's precision, and the pass's cost
+            is per window pixel.
         lk_max_iterations: LK iterations per level.
         lk_epsilon_px: LK stops when an update is smaller than this, pixels.
         lk_min_eigenvalue: LK rejects points whose normalised minimum eigenvalue
@@ -175,6 +179,7 @@ class TrackerOptions:
     lk_levels: int = 3
     lk_predicted_levels: int = 0
     lk_backward_levels: int = 0
+    lk_backward_window_px: int = 0
     lk_max_iterations: int = 30
     lk_epsilon_px: float = 0.01
     lk_min_eigenvalue: float = 1e-4
@@ -207,6 +212,7 @@ class TrackerOptions:
             "lk_levels": (self.lk_levels, 0),
             "lk_predicted_levels": (self.lk_predicted_levels, 0),
             "lk_backward_levels": (self.lk_backward_levels, 0),
+            "lk_backward_window_px": (self.lk_backward_window_px, 0),
             "lk_max_iterations": (self.lk_max_iterations, 1),
             "history_len": (self.history_len, 2),
             "predict_neighbours": (self.predict_neighbours, 0),
@@ -222,6 +228,13 @@ class TrackerOptions:
                 raise InvalidInputError(
                     f"TrackerOptions.{name} must be odd, got {getattr(self, name)}"
                 )
+        if self.lk_backward_window_px and (
+            self.lk_backward_window_px < 5 or self.lk_backward_window_px % 2 == 0
+        ):
+            raise InvalidInputError(
+                "TrackerOptions.lk_backward_window_px must be 0 or odd and >= 5, got "
+                f"{self.lk_backward_window_px}"
+            )
         floats: dict[str, tuple[float, float, float, bool]] = {
             "min_distance_px": (self.min_distance_px, 0.0, math.inf, True),
             "quality_level": (self.quality_level, 0.0, 1.0, False),
@@ -634,6 +647,7 @@ class FeatureTracker:
             opts.lk_epsilon_px,
         )
         win = (opts.lk_window_px, opts.lk_window_px)
+        back_side = opts.lk_backward_window_px or opts.lk_window_px
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
         # Each call builds both pyramids (~0.3 ms at 640x480); the Python binding does
         # not accept buildOpticalFlowPyramid's output (opencv/opencv#4777), so they are
@@ -659,7 +673,7 @@ class FeatureTracker:
                 prev_img,
                 p1,
                 p0.copy(),
-                winSize=win,
+                winSize=(back_side, back_side),
                 maxLevel=min(opts.lk_backward_levels, opts.lk_levels),
                 criteria=criteria,
                 flags=flags,

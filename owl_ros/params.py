@@ -481,6 +481,15 @@ PARAMS: tuple[Param, ...] = (
         engine="tracker.lk_backward_levels",
     ),
     Param(
+        "tracker_lk_backward_window_px",
+        "int",
+        _T.lk_backward_window_px,
+        "window side of the forward-backward check pass, px (odd; 0: tracker_lk_window_px)",
+        low=0,
+        high=101,
+        engine="tracker.lk_backward_window_px",
+    ),
+    Param(
         "tracker_lk_predicted_levels",
         "int",
         _T.lk_predicted_levels,

@@ -281,13 +281,16 @@ def test_backward_pass_needs_no_pyramid_reach() -> None:
     np.testing.assert_array_equal(kept[0], kept[3])
 
 
-def test_forward_backward_rejects_changed_region() -> None:
+@pytest.mark.parametrize("backward_window", [0, 9])
+def test_forward_backward_rejects_changed_region(backward_window: int) -> None:
+    # with the forward window (0) and with a smaller backward window (the check needs the
+    # round trip to within fb_threshold_px, not the forward pass's precision)
     d = np.array([1.3, 0.4])
     u, v = _grid()
     image1 = _shifted(d)
     box = (u >= 100) & (u < 200) & (v >= 60) & (v < 160)
     image1[box] = _texture(u[box], v[box], seed_shift=1.0)  # unrelated content
-    tracker = FeatureTracker(OPTS)
+    tracker = FeatureTracker(replace(OPTS, lk_backward_window_px=backward_window))
     first = tracker.track(IMAGE0, 0)
     second = tracker.track(image1, 1)
     p0 = first.pixels
@@ -464,6 +467,11 @@ def test_bad_inputs() -> None:
         TrackerOptions(fb_threshold_px=-1.0)
     with pytest.raises(InvalidInputError, match=r"lk_backward_levels.*-1"):
         TrackerOptions(lk_backward_levels=-1)
+    for side in (4, 8):
+        with pytest.raises(
+            InvalidInputError, match=f"lk_backward_window_px must be 0 or odd and >= 5, got {side}"
+        ):
+            TrackerOptions(lk_backward_window_px=side)
 
 
 def test_non_finite_prediction_falls_back_to_previous_position() -> None:
