@@ -1414,6 +1414,38 @@ def _parse_cases(text: str) -> tuple[Case, ...]:
     return tuple(parse_case(item) for item in text.split(","))
 
 
+def chosen_profile(
+    profile: Profile,
+    cases: str | None,
+    bags: Sequence[str],
+    seconds: float | None,
+    seeds: int,
+    features: int | None,
+) -> Profile:
+    """``profile`` with the command line's choices (``--cases`` labels joined by commas,
+    ``--bag`` paths, ``--seconds``, ``--seeds``, ``--features``; None: the profile's);
+    BenchError naming the option otherwise."""
+    chosen = _parse_cases(cases) if cases else ()
+    for bag in bags:
+        if not Path(bag).exists():
+            raise BenchError(f"--bag {bag}: no such file or directory")
+    chosen += tuple(Case("bag", 0.0, str(b)) for b in bags)
+    if chosen:
+        profile = replace(profile, cases=chosen)
+    if seconds is not None:
+        if not (math.isfinite(seconds) and seconds > 0):
+            raise BenchError(f"--seconds must be positive, got {seconds}")
+        profile = replace(profile, seconds=seconds)
+    if seeds < 1:
+        raise BenchError(f"--seeds must be >= 1, got {seeds}")
+    profile = replace(profile, seeds=tuple(range(seeds)))
+    if features is not None:
+        if features <= 0:
+            raise BenchError(f"--features must be positive, got {features}")
+        profile = replace(profile, features=features)
+    return profile
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``owl_bench``; returns the exit status.
 
@@ -1425,25 +1457,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     profile = replace(QUICK if args.quick else FULL, clock=args.clock)
     try:
-        cases = _parse_cases(args.cases) if args.cases else ()
-        for bag in args.bag:
-            if not Path(bag).exists():
-                raise BenchError(f"--bag {bag}: no such file or directory")
-        bags = tuple(Case("bag", 0.0, str(b)) for b in args.bag)
-        if cases or bags:
-            profile = replace(profile, cases=cases + bags)
-        if args.seconds is not None:
-            if not (math.isfinite(args.seconds) and args.seconds > 0):
-                raise BenchError(f"--seconds must be positive, got {args.seconds}")
-            profile = replace(profile, seconds=args.seconds)
-        if args.seeds < 1:
-            raise BenchError(f"--seeds must be >= 1, got {args.seeds}")
-        profile = replace(profile, seeds=tuple(range(args.seeds)))
+        profile = chosen_profile(
+            profile, args.cases, args.bag, args.seconds, args.seeds, args.features
+        )
         profile = replace(profile, engine_params=parse_engine_params(args.param))
-        if args.features is not None:
-            if args.features <= 0:
-                raise BenchError(f"--features must be positive, got {args.features}")
-            profile = replace(profile, features=args.features)
 
         def log(text: str) -> None:
             if not args.quiet:

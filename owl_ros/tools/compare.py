@@ -262,25 +262,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     keep_freed_memory()
     args = build_parser().parse_args(argv)
     try:
-        profile = bench.QUICK if args.quick else bench.FULL
-        cases = tuple(bench.parse_case(c) for c in args.cases.split(",")) if args.cases else ()
-        for path in args.bag:
-            if not Path(path).exists():
-                raise BenchError(f"--bag {path}: no such file or directory")
-        bags = tuple(bench.Case("bag", 0.0, str(b)) for b in args.bag)
-        if cases or bags:
-            profile = replace(profile, cases=cases + bags)
-        if args.seeds < 1:
-            raise BenchError(f"--seeds must be >= 1, got {args.seeds}")
-        profile = replace(profile, seeds=tuple(range(args.seeds)))
-        if args.seconds is not None:
-            if not (math.isfinite(args.seconds) and args.seconds > 0):
-                raise BenchError(f"--seconds must be positive, got {args.seconds}")
-            profile = replace(profile, seconds=args.seconds)
-        if args.features is not None:
-            if args.features <= 0:
-                raise BenchError(f"--features must be positive, got {args.features}")
-            profile = replace(profile, features=args.features)
+        profile = bench.chosen_profile(
+            bench.QUICK if args.quick else bench.FULL,
+            args.cases,
+            args.bag,
+            args.seconds,
+            args.seeds,
+            args.features,
+        )
         if not (math.isfinite(args.tolerance) and args.tolerance >= 0):
             raise BenchError(f"--tolerance must be >= 0, got {args.tolerance}")
         if not args.b:
