@@ -17,7 +17,8 @@ CPU ms a frame of both settings, each case's A and B run back to back on the sam
 one thread.
 
     python -m owl_ros.tools.compare --seeds 4 -b tracker_lk_window_px:=13
-    python -m owl_ros.tools.compare --cases street,cube --seeds 2 -a dense:=false ...
+    python -m owl_ros.tools.compare --cases street,cube --seeds 2 --size 1280x720 \
+        -b tracker_detect_level:=1
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from owl_core.errors import OwlError
 from owl_core.types import ImageFrame
 from owl_ros.heap import keep_freed_memory
 from owl_ros.threads import one_thread
-from owl_ros.tools import bench
+from owl_ros.tools import bench, cost
 from owl_ros.tools.errors import BenchError, EvalError, ToolError
 from owl_ros.tools.evaluate import FrameScore, score_frame, summarize
 
@@ -249,6 +250,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, default=4, help="render seeds per case (default 4)")
     p.add_argument("--seconds", type=float, default=None, help="override seconds per case")
     p.add_argument("--features", type=int, default=None, help="features requested, both")
+    p.add_argument(
+        "--size", type=cost.image_size, default=None, metavar="WxH",
+        help="image size of the rendered cases (default the profile's: 640x480, --quick 320x240)",
+    )  # fmt: skip
     p.add_argument("--tolerance", type=float, default=TOLERANCE, help="fraction (default 0.05)")
     p.add_argument("--cache-dir", default=None, help="owl_bench's frame cache")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -270,6 +275,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.seeds,
             args.features,
         )
+        if args.size is not None:
+            profile = replace(profile, width=args.size[0], height=args.size[1])
         if not (math.isfinite(args.tolerance) and args.tolerance >= 0):
             raise BenchError(f"--tolerance must be >= 0, got {args.tolerance}")
         if not args.b:

@@ -108,7 +108,8 @@ def median_rows(runs: Sequence[Sequence[dict[str, Any]]]) -> list[dict[str, Any]
     return out
 
 
-def _size(text: str) -> tuple[int, int]:
+def image_size(text: str) -> tuple[int, int]:
+    """``WxH`` (each >= 32) -> (width, height); argparse's error otherwise."""
     w, _, h = text.partition("x")
     if not (w.isdigit() and h.isdigit()) or int(w) < 32 or int(h) < 32:
         raise argparse.ArgumentTypeError(f"size must be WxH (>= 32x32), got {text!r}")
@@ -121,7 +122,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--scenario", default="street", help="scenario (owl_make_bag --list)")
     p.add_argument("--features", type=int, nargs="*", default=[250, 500, 1000, 2000])
     p.add_argument(
-        "--sizes", type=_size, nargs="*", default=[(320, 240), (640, 480), (960, 540), (1280, 720)]
+        "--sizes",
+        type=image_size,
+        nargs="*",
+        default=[(320, 240), (640, 480), (960, 540), (1280, 720)],
     )
     p.add_argument("--seconds", type=float, default=3.0, help="clip per feature setting, s")
     p.add_argument("--size-seconds", type=float, default=1.0, help="clip per image size, s")

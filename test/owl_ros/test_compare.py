@@ -22,7 +22,8 @@ def test_a_setting_against_itself_gives_ratios_of_one(
 ) -> None:
     # B sets the default value explicitly: the engine is deterministic, so every figure of
     # every seed is the same and every ratio exactly 1
-    doc = _run(capsys, tmp_path, "-b", "tracker_lk_window_px:=15")
+    doc = _run(capsys, tmp_path, "-b", "tracker_lk_window_px:=15", "--size", "160x120")
+    assert doc["image_size"] == "160x120"
     (row,) = doc["cases"]
     assert row["case"] == "street" and row["seeds"] == 2
     for name in compare.FIGURES:
@@ -68,11 +69,16 @@ def test_verdicts_weigh_the_seed_noise() -> None:
         (["-b", "tracker_lk_window_px:=14"], "tracker_lk_window_px"),
         (["-b", "no_such_setting:=1"], "no_such_setting"),
         (["-b", "tracker_lk_window_px:=13", "--seeds", "0"], "--seeds must be >= 1, got 0"),
+        (["-b", "tracker_lk_window_px:=13", "--size", "640"], "size must be WxH"),
     ],
 )
 def test_bad_input_is_one_line(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, args: list[str], message: str
 ) -> None:
-    assert compare.main(["--quick", "--cache-dir", str(tmp_path), *args]) == 2
+    try:  # a bad value of an option exits inside argparse, the rest returns
+        status = compare.main(["--quick", "--cache-dir", str(tmp_path), *args])
+    except SystemExit as stop:
+        status = stop.code
+    assert status == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err

@@ -26,9 +26,9 @@ def test_measure_and_plot(tmp_path: Path) -> None:
 
 
 def test_size_argument() -> None:
-    assert cost._size("640x480") == (640, 480)
+    assert cost.image_size("640x480") == (640, 480)
     with pytest.raises(argparse.ArgumentTypeError, match="WxH"):
-        cost._size("640")
+        cost.image_size("640")
 
 
 def test_median_rows_per_setting_and_stage() -> None:
