@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -37,27 +39,44 @@ def _listen(context: Any, pubs: DensePublishers, qos: Any) -> tuple[list[Any], A
     return got, listener, executor
 
 
-@pytest.mark.parametrize("in_process", [True, False], ids=["process", "thread"])
-def test_dense_outputs_built_only_while_subscribed(
-    tmp_path: Path, ros_domain_env: dict[str, str], pipeline_outputs: Any, in_process: bool
-) -> None:
+def _street_outputs(
+    tmp_path: Path, seconds: float, options: Any, pipeline_outputs: Any
+) -> list[tuple[Output, Any, Any]]:
+    """The pipeline's outputs over a rendered 160x120 street bag of ``seconds``."""
+    bag = tmp_path / "street"
+    args = ["street", str(bag), "--seconds", str(seconds), "--width", "160", "--height", "120"]
+    assert make_bag.main([*args, "--quiet"]) == 0
+    outs: list[tuple[Output, Any, Any]] = pipeline_outputs(bag, options)
+    return outs
+
+
+@contextmanager
+def _dense_node(options: Any) -> Iterator[tuple[Any, Any, DensePublishers, Any]]:
+    """In a context of its own: (the context, node ``owl``, its dense publishers, their
+    QoS); rclpy shut down on the way out."""
     import rclpy
     from rclpy.context import Context
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-    bag = tmp_path / "street"
-    args = ["street", str(bag), "--seconds", "0.5", "--width", "160", "--height", "120"]
-    assert make_bag.main([*args, "--quiet"]) == 0
-    values = {"dense": True, "dense_width": 80, "dense_height": 60}
-    options = build_options({**values, "dense_process": in_process})
-    outs = pipeline_outputs(bag, options)
-    assert len(outs) >= 10
     context = Context()
     rclpy.init(context=context)
     try:
         node = rclpy.create_node("owl", context=context)
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        pubs = DensePublishers(node, options, qos)
+        yield context, node, DensePublishers(node, options, qos), qos
+    finally:
+        rclpy.shutdown(context=context)
+
+
+@pytest.mark.parametrize("in_process", [True, False], ids=["process", "thread"])
+def test_dense_outputs_built_only_while_subscribed(
+    tmp_path: Path, ros_domain_env: dict[str, str], pipeline_outputs: Any, in_process: bool
+) -> None:
+    values = {"dense": True, "dense_width": 80, "dense_height": 60}
+    options = build_options({**values, "dense_process": in_process})
+    outs = _street_outputs(tmp_path, 0.5, options, pipeline_outputs)
+    assert len(outs) >= 10
+    with _dense_node(options) as (context, node, pubs, qos):
         assert (pubs.process is not None) == in_process
         half = len(outs) // 2
         for out, engine, camera in outs[:half]:
@@ -86,8 +105,6 @@ def test_dense_outputs_built_only_while_subscribed(
         assert pubs.process is None or pubs.process.pid is None  # the child has exited
         listener.destroy_node()
         node.destroy_node()
-    finally:
-        rclpy.shutdown(context=context)
 
 
 def test_a_dead_dense_process_is_said_and_started_again(
@@ -98,21 +115,9 @@ def test_a_dead_dense_process_is_said_and_started_again(
     import os
     import signal
 
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-    bag = tmp_path / "street"
-    args = ["street", str(bag), "--seconds", "0.4", "--width", "160", "--height", "120"]
-    assert make_bag.main([*args, "--quiet"]) == 0
     options = build_options({"dense": True, "dense_width": 80, "dense_height": 60})
-    outs = pipeline_outputs(bag, options)
-    context = Context()
-    rclpy.init(context=context)
-    try:
-        node = rclpy.create_node("owl", context=context)
-        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        pubs = DensePublishers(node, options, qos)
+    outs = _street_outputs(tmp_path, 0.4, options, pipeline_outputs)
+    with _dense_node(options) as (context, node, pubs, qos):
         got, listener, executor = _listen(context, pubs, qos)
         deadline = time.monotonic() + 10.0
 
@@ -143,8 +148,6 @@ def test_a_dead_dense_process_is_said_and_started_again(
         pubs.close()
         listener.destroy_node()
         node.destroy_node()
-    finally:
-        rclpy.shutdown(context=context)
 
 
 def test_dense_status_says_why_a_frame_gave_nothing_and_shows_no_old_figures(
@@ -155,11 +158,8 @@ def test_dense_status_says_why_a_frame_gave_nothing_and_shows_no_old_figures(
     listens) forgets the result."""
     from owl_ros.dense_outputs import DenseStage
 
-    bag = tmp_path / "street"
-    args = ["street", str(bag), "--seconds", "0.5", "--width", "160", "--height", "120"]
-    assert make_bag.main([*args, "--quiet"]) == 0
     options = build_options({"dense": True, "dense_width": 80, "dense_height": 60})
-    outs = pipeline_outputs(bag, options)
+    outs = _street_outputs(tmp_path, 0.5, options, pipeline_outputs)
     stage = DenseStage(options)
 
     def feed(items: list[tuple[Output, Any, Any]], image: Any = None) -> int:

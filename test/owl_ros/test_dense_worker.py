@@ -31,6 +31,14 @@ def _jobs(outs: list[Any], stage: DenseStage) -> list[Any]:
     return [j for j in jobs if j is not None]
 
 
+def _third_frame(bag: Path, pipeline_outputs: Any) -> tuple[DenseStage, Any]:
+    """A dense stage with :data:`OPTIONS` and its job for the bag's third frame (the first
+    frame gives none: there is no flow yet)."""
+    options = build_options(OPTIONS)
+    stage = DenseStage(options)
+    return stage, _jobs(pipeline_outputs(bag, options)[:3], stage)[-1]
+
+
 def test_the_process_gives_the_arrays_and_summary_of_the_thread(
     bag: Path, pipeline_outputs: Any
 ) -> None:
@@ -59,9 +67,7 @@ def test_the_process_gives_the_arrays_and_summary_of_the_thread(
 
 
 def test_only_the_asked_topics_cross(bag: Path, pipeline_outputs: Any) -> None:
-    options = build_options(OPTIONS)
-    stage = DenseStage(options)
-    job = _jobs(pipeline_outputs(bag, options)[:3], stage)[-1]
+    stage, job = _third_frame(bag, pipeline_outputs)
     proc = DenseProcess()
     try:
         kind, _, arrays = proc.measure(stage.request(job, None, frozenset({"owl/looming"})))
@@ -72,9 +78,7 @@ def test_only_the_asked_topics_cross(bag: Path, pipeline_outputs: Any) -> None:
 
 
 def test_bad_input_is_one_line_and_the_process_goes_on(bag: Path, pipeline_outputs: Any) -> None:
-    options = build_options(OPTIONS)
-    stage = DenseStage(options)
-    job = _jobs(pipeline_outputs(bag, options)[:3], stage)[-1]
+    stage, job = _third_frame(bag, pipeline_outputs)
     proc = DenseProcess()
     try:
         good = stage.request(job, None, frozenset(TOPICS))
@@ -90,9 +94,7 @@ def test_bad_input_is_one_line_and_the_process_goes_on(bag: Path, pipeline_outpu
 
 
 def test_a_child_that_cannot_start_is_said(bag: Path, pipeline_outputs: Any) -> None:
-    options = build_options(OPTIONS)
-    stage = DenseStage(options)
-    job = _jobs(pipeline_outputs(bag, options)[:3], stage)[-1]
+    stage, job = _third_frame(bag, pipeline_outputs)
     proc = DenseProcess(python="/nonexistent/python3")
     with pytest.raises(DenseProcessError, match="could not start the dense process"):
         proc.measure(stage.request(job, None, frozenset(TOPICS)))
