@@ -59,12 +59,9 @@ class _Side:
     scores: list[FrameScore]
     seed_figures: list[dict[str, Any]]
     cpu_s: float = 0.0
-    frames: int = 0
 
 
-def run_owl(
-    case: bench.Case, profile: bench.Profile, src: bench.Source
-) -> tuple[list[FrameScore], float]:
+def run_owl(profile: bench.Profile, src: bench.Source) -> tuple[list[FrameScore], float]:
     """OWL alone over ``src`` with ``profile``'s engine settings: its frame scores and the
     CPU seconds the engine took (its own ``total`` timing, ``time.process_time``)."""
     engine = bench._source_engine(src, profile, src.readout_s)
@@ -132,12 +129,11 @@ def compare(
                 src = bench.sim_source(case, bench.load_frames(sim, cache, log, case), sim)
             has_mask = src.has_mask
             for key, profile in (("a", profile_a), ("b", profile_b)):
-                scores, cpu = run_owl(case, profile, src)
+                scores, cpu = run_owl(profile, src)
                 side = sides[key]
                 side.scores.extend(scores)
                 side.seed_figures.append(summarize(scores, src.has_mask))
                 side.cpu_s += cpu
-                side.frames += len(scores)
         pooled = {k: summarize(s.scores, has_mask) for k, s in sides.items()}
         figures = {}
         for name in FIGURES:
@@ -155,14 +151,14 @@ def compare(
             }
         for key, side in sides.items():
             totals[key][0] += side.cpu_s
-            totals[key][1] += side.frames
+            totals[key][1] += len(side.scores)
         rows.append(
             {
                 "case": case.label,
                 "seeds": len(seeds),
                 "figures": figures,
                 "cpu_ms_per_frame": {
-                    k: 1e3 * s.cpu_s / max(s.frames, 1) for k, s in sides.items()
+                    k: 1e3 * s.cpu_s / max(len(s.scores), 1) for k, s in sides.items()
                 },
             }
         )
